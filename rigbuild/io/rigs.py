@@ -1,0 +1,242 @@
+"""Reading and writing blendshape rigs.
+
+Formats:
+
+- ICT-FaceKit ``FaceXModel`` folder (full-shape OBJs in cm, ``vertex_indices.json``): :func:`read_ict_rig`.
+- Generic OBJ folder: ``neutral.obj`` + one OBJ per shape (full shapes, same topology), optional
+  ``rig.json`` with units / markers / face region: :func:`read_obj_folder_rig`, :func:`write_obj_folder_rig`.
+- npz with the keys of ``ground_truth/actor_rig.npz`` (``neutral``, ``deltas``, ``shape_names``, ``faces``)
+  plus optional extras: :func:`read_rig_npz`, :func:`write_rig_npz`.
+- ``"procedural"``: the built-in procedural head (:mod:`rigbuild.synth.head`).
+
+:func:`load_rig` picks the reader from a spec string. Every reader returns a :class:`Rig` in mm.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from rigbuild.errors import InputError
+from rigbuild.io.atomic import atomic_path, save_npz, write_json
+from rigbuild.io.obj import read_obj, write_obj
+from rigbuild.rig import Rig
+
+ICT_NEUTRAL = "generic_neutral_mesh.obj"
+#: ICT vertex ranges (from its README): face skin and head/neck.
+ICT_FACE_VERTICES = (0, 9409)
+ICT_NARROW_FACE_VERTICES = (0, 6706)
+ICT_HEAD_VERTICES = (0, 11248)
+
+
+def read_ict_rig(
+    folder: str | os.PathLike,
+    identity: Sequence[float] | None = None,
+    expressions: Sequence[str] | None = None,
+    units: str = "mm",
+) -> Rig:
+    """Read the ICT Face Model Light from its ``FaceXModel`` folder.
+
+    Parameters
+    ----------
+    folder : the ``FaceXModel`` folder (``generic_neutral_mesh.obj``, expression OBJs, identityNNN.obj,
+        ``vertex_indices.json``).
+    identity : coefficients of the identity modes ``identity000.obj ...`` (as many as given); the
+        neutral becomes ``neutral + sum_i c_i (identity_i - neutral)``. Expression deltas are unchanged.
+    expressions : shape names to load (default: the 53 listed under ``expressions`` in
+        ``vertex_indices.json``).
+    units : output units (the files are in cm).
+
+    Returns
+    -------
+    Rig with 26,719 vertices, triangulated faces, UVs, ``face_region`` = vertices 0-9408,
+    ``landmarks`` = the 68 Multi-PIE vertex indices.
+    """
+    folder = Path(folder)
+    neutral_path = folder / ICT_NEUTRAL
+    if not neutral_path.exists():
+        raise InputError(
+            f"not an ICT FaceXModel folder (no {ICT_NEUTRAL})",
+            path=folder,
+            fix="point the rig at ict-facekit/FaceXModel (set $RIGBUILD_DATA)",
+        )
+    index_path = folder / "vertex_indices.json"
+    meta = json.loads(index_path.read_text()) if index_path.exists() else {}
+    names = list(expressions) if expressions is not None else list(meta.get("expressions", []))
+    if not names:
+        names = sorted(p.stem for p in folder.glob("*.obj") if p.name != ICT_NEUTRAL and not p.stem.startswith("identity"))
+    base = read_obj(neutral_path)
+    neutral = base.vertices
+    deltas = np.empty((len(names), neutral.shape[0], 3))
+    for k, name in enumerate(names):
+        p = folder / f"{name}.obj"
+        if not p.exists():
+            raise InputError(f"expression '{name}' not found", path=p, fix="check the shape name against the folder")
+        v = read_obj(p, positions_only=True).vertices
+        if v.shape != neutral.shape:
+            raise InputError(f"topology differs from {ICT_NEUTRAL}: {v.shape[0]} vs {neutral.shape[0]} vertices", path=p)
+        deltas[k] = v - neutral
+    if identity is not None:
+        for i, c in enumerate(identity):
+            p = folder / f"identity{i:03d}.obj"
+            if not p.exists():
+                raise InputError(f"identity mode {i} not found", path=p, fix=f"use at most {i} identity coefficients")
+            neutral = neutral + float(c) * (read_obj(p, positions_only=True).vertices - base.vertices)
+    landmarks = np.asarray(meta.get("idx_to_landmark_verts", []), dtype=np.int64)
+    rig = Rig(
+        neutral=neutral,
+        deltas=deltas,
+        shape_names=names,
+        faces=base.faces,
+        uvs=base.uvs,
+        face_uvs=base.face_uvs,
+        units="cm",
+        name="ict",
+        face_region=np.arange(*ICT_FACE_VERTICES),
+        landmarks=landmarks if landmarks.size == 68 else None,
+    )
+    return rig.to_units(units)
+
+
+def read_obj_folder_rig(folder: str | os.PathLike, units: str | None = None) -> Rig:
+    """Read a generic OBJ-folder rig: ``neutral.obj`` + ``<shape>.obj`` per shape (full shapes).
+
+    An optional ``rig.json`` gives ``units`` (default mm), ``shape_names`` (order), ``face_region``,
+    ``landmarks``, ``markers`` (``{name: vertex}``), ``name``.
+    """
+    folder = Path(folder)
+    neutral_path = folder / "neutral.obj"
+    if not neutral_path.exists():
+        raise InputError("OBJ-folder rig needs neutral.obj", path=folder, fix="name the neutral mesh neutral.obj")
+    meta_path = folder / "rig.json"
+    meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
+    base = read_obj(neutral_path)
+    names = meta.get("shape_names") or sorted(p.stem for p in folder.glob("*.obj") if p.name != "neutral.obj")
+    deltas = np.empty((len(names), base.vertices.shape[0], 3))
+    for k, name in enumerate(names):
+        p = folder / f"{name}.obj"
+        if not p.exists():
+            raise InputError(f"shape '{name}' listed in rig.json has no OBJ", path=p)
+        v = read_obj(p, positions_only=True).vertices
+        if v.shape != base.vertices.shape:
+            raise InputError(
+                f"topology differs from neutral.obj: {v.shape[0]} vs {base.vertices.shape[0]} vertices",
+                path=p,
+                fix="every shape OBJ must have the neutral's vertex count and order",
+            )
+        deltas[k] = v - base.vertices
+    markers = meta.get("markers", {})
+    rig = Rig(
+        neutral=base.vertices,
+        deltas=deltas,
+        shape_names=names,
+        faces=base.faces,
+        uvs=base.uvs,
+        face_uvs=base.face_uvs,
+        units=meta.get("units", "mm"),
+        name=meta.get("name", folder.name),
+        face_region=meta.get("face_region"),
+        landmarks=meta.get("landmarks"),
+        marker_names=list(markers.keys()),
+        marker_vertices=list(markers.values()),
+    )
+    return rig if units is None else rig.to_units(units)
+
+
+def write_obj_folder_rig(rig: Rig, folder: str | os.PathLike) -> None:
+    """Write ``neutral.obj``, one full-shape OBJ per shape, and ``rig.json`` (units, names, markers)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    hdr = f"rigbuild rig '{rig.name}', units {rig.units}"
+    write_obj(folder / "neutral.obj", rig.neutral, rig.faces, rig.uvs, rig.face_uvs, header=hdr)
+    for name, d in zip(rig.shape_names, rig.deltas):
+        write_obj(folder / f"{name}.obj", rig.neutral + d, rig.faces, rig.uvs, rig.face_uvs, header=f"{hdr}, shape {name}")
+    write_json(
+        folder / "rig.json",
+        {
+            "name": rig.name,
+            "units": rig.units,
+            "axes": "right-handed, +y up, +z towards the face's front",
+            "shape_names": rig.shape_names,
+            "face_region": None if rig.face_region is None else rig.face_region.tolist(),
+            "landmarks": None if rig.landmarks is None else rig.landmarks.tolist(),
+            "markers": {n: int(v) for n, v in zip(rig.marker_names, rig.marker_vertices)},
+        },
+    )
+
+
+def write_rig_npz(path: str | os.PathLike, rig: Rig, **extra) -> None:
+    """Write a rig npz (keys ``neutral deltas shape_names faces`` + uvs, face_uvs, units, name,
+    face_region, landmarks, marker_names, marker_vertices when present) atomically. float32 positions."""
+    arrays = dict(
+        neutral=rig.neutral.astype(np.float32),
+        deltas=rig.deltas.astype(np.float32),
+        shape_names=np.asarray(rig.shape_names, dtype=str),
+        faces=rig.faces.astype(np.int32),
+        units=np.asarray(rig.units),
+        name=np.asarray(rig.name),
+        marker_names=np.asarray(rig.marker_names, dtype=str),
+        marker_vertices=rig.marker_vertices.astype(np.int32),
+    )
+    for key in ("uvs", "face_uvs", "face_region", "landmarks"):
+        v = getattr(rig, key)
+        if v is not None:
+            arrays[key] = v
+    arrays.update(extra)
+    save_npz(path, **arrays)
+
+
+def read_rig_npz(path: str | os.PathLike) -> Rig:
+    """Read a rig npz written by :func:`write_rig_npz` (or any npz with the four required keys)."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError("rig npz not found", path=path)
+    with np.load(path, allow_pickle=False) as z:
+        missing = [k for k in ("neutral", "deltas", "shape_names", "faces") if k not in z]
+        if missing:
+            raise InputError(f"rig npz lacks keys {missing}", path=path)
+        get = lambda k: z[k] if k in z else None  # noqa: E731
+        return Rig(
+            neutral=z["neutral"].astype(np.float64),
+            deltas=z["deltas"].astype(np.float64),
+            shape_names=[str(s) for s in z["shape_names"]],
+            faces=z["faces"],
+            uvs=get("uvs"),
+            face_uvs=get("face_uvs"),
+            units=str(z["units"]) if "units" in z else "mm",
+            name=str(z["name"]) if "name" in z else path.stem,
+            face_region=get("face_region"),
+            landmarks=get("landmarks"),
+            marker_names=[str(s) for s in z["marker_names"]] if "marker_names" in z else [],
+            marker_vertices=z["marker_vertices"] if "marker_vertices" in z else np.zeros(0, np.int64),
+        )
+
+
+def load_rig(spec: str | os.PathLike, units: str = "mm", **kwargs) -> Rig:
+    """Load a rig from a spec: ``"procedural"``, an ICT FaceXModel folder, an OBJ folder or an npz.
+
+    Extra keyword arguments go to the reader (``identity=`` for ICT, ``seed=`` etc. for procedural).
+    """
+    s = str(spec)
+    if s == "procedural":
+        from rigbuild.synth.head import procedural_head_rig
+
+        return procedural_head_rig(**kwargs).to_units(units)
+    p = Path(s)
+    if not p.exists():
+        raise InputError(
+            "rig not found",
+            path=p,
+            fix="give 'procedural', an ICT FaceXModel folder, an OBJ folder with neutral.obj, or a rig .npz",
+        )
+    if p.is_file() and p.suffix == ".npz":
+        return read_rig_npz(p).to_units(units)
+    if p.is_dir() and (p / ICT_NEUTRAL).exists():
+        return read_ict_rig(p, units=units, **kwargs)
+    if p.is_dir():
+        return read_obj_folder_rig(p, units=units)
+    raise InputError("unrecognized rig format", path=p, fix="use a folder of OBJs or a .npz")
