@@ -217,11 +217,20 @@ def read_rig_npz(path: str | os.PathLike) -> Rig:
 
 
 def load_rig(spec: str | os.PathLike, units: str = "mm", **kwargs) -> Rig:
-    """Load a rig from a spec: ``"procedural"``, an ICT FaceXModel folder, an OBJ folder or an npz.
+    """Load a rig from a spec: ``"procedural"``, ``"ict"`` (``$RIGBUILD_DATA/ict-facekit/FaceXModel``),
+    an ICT FaceXModel folder, an OBJ folder or an npz.
 
     Extra keyword arguments go to the reader (``identity=`` for ICT, ``seed=`` etc. for procedural).
     """
     s = str(spec)
+    if s == "ict":
+        from rigbuild.paths import ict_dir
+
+        folder = ict_dir()
+        if not (folder / ICT_NEUTRAL).exists():
+            raise InputError("the ICT rig was requested but ICT-FaceKit is not there", path=folder,
+                             fix="set RIGBUILD_DATA to the folder holding ict-facekit/")
+        return read_ict_rig(folder, units=units, **kwargs)
     if s == "procedural":
         from rigbuild.synth.head import procedural_head_rig
 
@@ -240,3 +249,18 @@ def load_rig(spec: str | os.PathLike, units: str = "mm", **kwargs) -> Rig:
     if p.is_dir():
         return read_obj_folder_rig(p, units=units)
     raise InputError("unrecognized rig format", path=p, fix="use a folder of OBJs or a .npz")
+
+
+def read_ict_identity_modes(folder: str | os.PathLike, n_modes: int, units: str = "mm") -> np.ndarray:
+    """The first ``n_modes`` ICT identity modes as deltas (n_modes, V, 3) in ``units``."""
+    from rigbuild.rig import UNIT_TO_MM
+
+    folder = Path(folder)
+    base = read_obj(folder / ICT_NEUTRAL, positions_only=True).vertices
+    modes = []
+    for i in range(n_modes):
+        p = folder / f"identity{i:03d}.obj"
+        if not p.exists():
+            raise InputError(f"identity mode {i} not found", path=p, fix=f"use at most {i} identity modes")
+        modes.append(read_obj(p, positions_only=True).vertices - base)
+    return np.asarray(modes) * (UNIT_TO_MM["cm"] / UNIT_TO_MM[units])

@@ -1,0 +1,1 @@
+"""Synthetic capture sessions with known ground truth (rigs, actors, motion, cameras, images)."""

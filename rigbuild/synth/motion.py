@@ -1,0 +1,171 @@
+"""Synthetic motion: ROM weight sequences, rigid head motion, speech-like performances, markers."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from rigbuild.geometry.rigid import apply_rigid
+from rigbuild.rig import Rig
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * x * (x * (6 * x - 15) + 10)
+
+
+def _bump(t: np.ndarray, start: float, peak: float, end: float) -> np.ndarray:
+    """0 before ``start``, eases to 1 at ``peak``, back to 0 at ``end`` (C2 quintic smoothstep)."""
+    up = _smoothstep((t - start) / max(peak - start, 1e-9))
+    down = _smoothstep((end - t) / max(end - peak, 1e-9))
+    return np.where(t <= peak, up, down)
+
+
+def make_rom_weights(
+    shape_names: Sequence[str],
+    n_sequences: int,
+    frames_per_sequence: int,
+    seed: int = 0,
+    coverage: int = 2,
+    peak_range: tuple[float, float] = (0.6, 1.0),
+) -> list[np.ndarray]:
+    """Range-of-motion weight sequences.
+
+    Every sequence starts and ends at neutral (all weights 0). Shapes are dealt to sequences so that
+    each shape peaks in ``coverage`` different sequences with different partners; inside a sequence
+    each of its shapes follows its own eased bump (own onset, peak frame and release), so the poses
+    are sparse, varying combinations rather than one shape scaled (which would make shapes that
+    share a sequence indistinguishable).
+
+    Returns a list of ``n_sequences`` arrays (F, K) in [0, 1].
+    """
+    rng = np.random.default_rng(seed)
+    K = len(shape_names)
+    F = int(frames_per_sequence)
+    if F < 5:
+        raise ValueError("a ROM sequence needs at least 5 frames (neutral, ease in, peak, ease out, neutral)")
+    groups: list[list[int]] = [[] for _ in range(n_sequences)]
+    for rep in range(coverage):
+        order = rng.permutation(K)
+        for i, k in enumerate(order):
+            s = (i + rep * 7) % n_sequences
+            if k in groups[s]:
+                s = (s + 1) % n_sequences
+            groups[s].append(int(k))
+    t = np.arange(F, dtype=np.float64)
+    last = F - 1
+    seqs = []
+    for g in groups:
+        W = np.zeros((F, K))
+        for k in g:
+            start = rng.uniform(0.0, 0.25) * last
+            end = last - rng.uniform(0.0, 0.25) * last
+            peak = rng.uniform(start + 0.25 * (end - start), end - 0.25 * (end - start))
+            W[:, k] = np.maximum(W[:, k], rng.uniform(*peak_range) * _bump(t, start, peak, end))
+        W[0] = 0.0
+        W[-1] = 0.0
+        seqs.append(W)
+    return seqs
+
+
+def make_head_motion(n_frames: int, seed: int = 0, max_rotation_deg: float = 3.0,
+                     max_translation_mm: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+    """Smooth rigid head motion ``x' = R x + t``; frame 0 is the identity.
+
+    Returns R (F, 3, 3), t (F, 3) mm. Each rotation-vector and translation component is a random
+    low-frequency sinusoid mix scaled to the given maxima.
+    """
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    u = np.linspace(0, 1, n_frames)
+
+    def curve() -> np.ndarray:
+        c = np.zeros(n_frames)
+        for _ in range(3):
+            c += rng.normal() * np.sin(np.pi * u * rng.uniform(0.5, 2.0))
+        m = np.abs(c).max()
+        return c / m if m > 0 else c
+
+    rv = np.stack([curve() for _ in range(3)], 1) * np.radians(max_rotation_deg)
+    t = np.stack([curve() for _ in range(3)], 1) * max_translation_mm
+    return Rotation.from_rotvec(rv).as_matrix(), t
+
+
+def make_performance_weights(shape_names: Sequence[str], n_frames: int, fps: float, seed: int = 0,
+                             active_fraction: float = 0.8) -> np.ndarray:
+    """Speech-like smooth random weight curves (F, K) in [0, 1].
+
+    Mouth and jaw shapes get syllable-rate events (3-6 per second, 0.12-0.4 s long); brows, cheeks
+    and nose get slower expression events (0.3 per second, 0.5-2 s); blinks happen every 2-6 s
+    for 0.15-0.25 s on both eyes at once. A random ``1 - active_fraction`` of the non-blink shapes
+    stay at zero. Events are raised-cosine bumps; overlapping events saturate smoothly
+    (``1 - exp(-2x)`` scaled to reach 1).
+    """
+    rng = np.random.default_rng(seed)
+    K = len(shape_names)
+    t = np.arange(n_frames) / fps
+    dur = n_frames / fps
+    W = np.zeros((n_frames, K))
+
+    def add_events(k: int, rate: float, length: tuple[float, float], amp: tuple[float, float]) -> None:
+        n = rng.poisson(rate * dur)
+        for _ in range(n):
+            c = rng.uniform(0, dur)
+            half = rng.uniform(*length) / 2
+            a = rng.uniform(*amp)
+            x = np.clip((t - c) / half, -1, 1)
+            W[:, k] += a * 0.5 * (1 + np.cos(np.pi * x))
+
+    blink_idx = [k for k, n in enumerate(shape_names) if n.startswith("eyeBlink")]
+    others = [k for k in range(K) if k not in blink_idx]
+    active = set(rng.choice(others, size=int(round(active_fraction * len(others))), replace=False).tolist()) if others else set()
+    for k in others:
+        if k not in active:
+            continue
+        n = shape_names[k]
+        if n.startswith(("jaw", "mouth")):
+            add_events(k, rng.uniform(0.5, 1.5), (0.12, 0.4), (0.2, 0.9))
+        else:
+            add_events(k, 0.3, (0.5, 2.0), (0.2, 0.8))
+    if blink_idx:
+        c = rng.uniform(0.5, 3.0)
+        while c < dur:
+            half = rng.uniform(0.15, 0.25) / 2
+            x = np.clip((t - c) / half, -1, 1)
+            W[:, blink_idx] += 0.5 * (1 + np.cos(np.pi * x))[:, None]
+            c += rng.uniform(2.0, 6.0)
+    W = (1 - np.exp(-2 * W)) / (1 - np.exp(-2.0))
+    return np.clip(W, 0.0, 1.0)
+
+
+def markers_from_rig(rig: Rig, weights: np.ndarray, R: np.ndarray | None = None, t: np.ndarray | None = None,
+                     noise_mm: float = 0.0, gap_fraction: float = 0.0, seed: int = 0) -> np.ndarray:
+    """Marker trajectories (F, M, 3) mm at ``rig.marker_vertices`` for weights (F, K).
+
+    ``R`` (F, 3, 3), ``t`` (F, 3): rigid head motion applied after the expression. ``noise_mm``:
+    isotropic Gaussian noise. ``gap_fraction``: about this fraction of samples become NaN, in runs of
+    3-20 frames per marker (occlusions).
+    """
+    rng = np.random.default_rng(seed)
+    if rig.marker_vertices.size == 0:
+        raise ValueError(f"rig '{rig.name}' has no marker set")
+    W = np.asarray(weights, dtype=np.float64)
+    D = rig.deltas[:, rig.marker_vertices].reshape(rig.n_shapes, -1)
+    m = (rig.neutral[rig.marker_vertices].reshape(-1) + W @ D).reshape(W.shape[0], -1, 3)
+    if R is not None:
+        m = np.einsum("fij,fmj->fmi", R, m) + (0 if t is None else np.asarray(t)[:, None, :])
+    if noise_mm > 0:
+        m = m + rng.normal(scale=noise_mm, size=m.shape)
+    if gap_fraction > 0:
+        F, M = m.shape[:2]
+        target = gap_fraction * F * M
+        gapped = 0
+        while gapped < target:
+            j = rng.integers(M)
+            L = int(rng.integers(3, 21))
+            s = int(rng.integers(0, max(F - L, 1)))
+            gapped += np.count_nonzero(~np.isnan(m[s:s + L, j, 0]))
+            m[s:s + L, j] = np.nan
+    return m

@@ -1,0 +1,215 @@
+"""Generate a complete synthetic capture session with ground truth.
+
+:func:`plan_session` turns the ``synthetic:`` block of a config entry into the ``session.yaml`` dict
+(so the Snakemake DAG is known before anything is rendered); :func:`generate_session` writes the
+session folder: ``session.yaml``, ``calib/<cam>/<n>.png``, ``rom/<seq>/<cam>/<frame:06d>.png``,
+``performances/<name>.c3d`` and ``ground_truth/`` (cameras.json, rom/<seq>.npz, actor_rig.npz,
+template_rig.npz, performances/<name>.npz, actor_info.json). Pipeline stages never read ground_truth/.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from rigbuild.errors import InputError
+
+#: defaults of the ``synthetic:`` block (config/config.yaml documents each key)
+SYNTH_DEFAULTS: dict[str, Any] = {
+    "template_rig": "procedural",
+    "seed": 0,
+    "n_cameras": 6,
+    "image_size": [640, 480],
+    "camera_distance_mm": 450.0,
+    "camera_arc_deg": [-60.0, 60.0],
+    "camera_rows": 1,
+    "distortion_scale": 1.0,
+    "noise_sigma": 1.5,
+    "paint_markers": True,
+    "calib_poses": 20,
+    "board": {"type": "charuco", "squares_x": 7, "squares_y": 5, "square_size_mm": 24.0,
+              "marker_size_mm": 18.0, "dictionary": "DICT_5X5_100"},
+    "rom": {"n_sequences": 4, "frames_per_sequence": 9, "coverage": 2,
+            "max_rotation_deg": 2.0, "max_translation_mm": 3.0},
+    "performance": {"n": 1, "duration_s": 10.0, "fps": 30.0, "noise_mm": 0.2, "gap_fraction": 0.01},
+    "actor": {"intensity_range": [0.6, 1.5], "asymmetry": 0.25, "crosstalk": 0.08, "warp": 0.15},
+}
+
+
+def _merge(base: dict, override: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in (override or {}).items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def synth_params(synthetic: dict | None) -> dict:
+    """The ``synthetic:`` block with defaults filled in."""
+    return _merge(SYNTH_DEFAULTS, synthetic or {})
+
+
+def plan_session(name: str, synthetic: dict | None) -> dict:
+    """The ``session.yaml`` dict a synthetic session will have (cameras, sequences, performances)."""
+    p = synth_params(synthetic)
+    n_seq = int(p["rom"]["n_sequences"])
+    F = int(p["rom"]["frames_per_sequence"])
+    return {
+        "name": name,
+        "units": "mm",
+        "cameras": [f"cam{i:02d}" for i in range(int(p["n_cameras"]))],
+        "image_size": [int(p["image_size"][0]), int(p["image_size"][1])],
+        "fps": float(p["performance"]["fps"]),
+        "board": dict(p["board"]),
+        "rom": [{"name": f"rom{s:02d}", "frames": [0, F - 1], "neutral_frame": 0} for s in range(n_seq)],
+        "performances": [{"name": f"perf{i:02d}", "file": f"performances/perf{i:02d}.c3d"}
+                         for i in range(int(p["performance"]["n"]))],
+        "template_rig": str(p["template_rig"]),
+        "synthetic": {"seed": int(p["seed"]), "generator": "rigbuild.synth.session"},
+    }
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    import cv2
+
+    from rigbuild.io.atomic import atomic_path
+
+    with atomic_path(path, suffix=".png") as tmp:
+        bgr = image[..., ::-1] if image.ndim == 3 else image
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(bgr), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+            raise OSError(f"could not write {path}")
+
+
+def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | None,
+                     progress: Callable[[str], None] | None = None) -> dict:
+    """Render a whole synthetic session into ``out_dir`` (replaced if it exists). Returns timings.
+
+    Everything derives from ``synthetic["seed"]``: the same config gives byte-identical files.
+    The folder is built under a temporary name and renamed at the end, so an interrupted run
+    leaves no half-written session.
+    """
+    from rigbuild.io.cameras import write_cameras
+    from rigbuild.io.markers import write_markers_c3d
+    from rigbuild.io.rigs import load_rig, write_rig_npz
+    from rigbuild.io.atomic import save_npz, write_json
+    from rigbuild.paths import ict_dir
+    from rigbuild.render import render_mesh
+    from rigbuild.render.board import render_board
+    from rigbuild.render.mesh import TexturedMesh, speckle_texture
+    from rigbuild.session import session_from_dict, write_session
+    from rigbuild.synth.actor import make_actor_rig
+    from rigbuild.synth.motion import make_head_motion, make_performance_weights, make_rom_weights, markers_from_rig
+    from rigbuild.synth.rig_layout import make_board_poses, make_camera_rig
+
+    say = progress or (lambda msg: None)
+    p = synth_params(synthetic)
+    plan = plan_session(name, synthetic)
+    out_dir = Path(out_dir)
+    tmp_dir = out_dir.with_name(f".{out_dir.name}.partial")
+    if tmp_dir.exists():
+        shutil.rmtree(tmp_dir)
+    tmp_dir.mkdir(parents=True)
+    spec = session_from_dict(plan, tmp_dir)
+    seed = int(p["seed"])
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+
+    # ---------------------------------------------------------------- rigs
+    template = load_rig(p["template_rig"])
+    if template.marker_vertices.size == 0:
+        raise InputError(f"template rig '{p['template_rig']}' has no marker set", fix="add markers to the rig")
+    identity_folder = ict_dir() if p["template_rig"] == "ict" else None
+    actor, actor_info = make_actor_rig(template, seed=seed, identity_folder=identity_folder,
+                                       intensity_range=tuple(p["actor"]["intensity_range"]),
+                                       asymmetry=p["actor"]["asymmetry"], crosstalk=p["actor"]["crosstalk"],
+                                       warp=p["actor"]["warp"])
+    gt = tmp_dir / "ground_truth"
+    write_rig_npz(gt / "actor_rig.npz", actor)
+    write_rig_npz(gt / "template_rig.npz", template)
+    write_json(gt / "actor_info.json", actor_info)
+    timings["rigs_s"] = time.perf_counter() - t0
+
+    # ------------------------------------------------------------- cameras
+    W, H = spec.width, spec.height
+    face_centre = actor.neutral[actor.face_vertices].mean(0)
+    cameras = make_camera_rig(n_cameras=len(spec.cameras), width=W, height=H,
+                              distance_mm=float(p["camera_distance_mm"]), arc_deg=tuple(p["camera_arc_deg"]),
+                              rows=int(p["camera_rows"]), target=face_centre,
+                              distortion_scale=float(p["distortion_scale"]), seed=seed)
+    write_cameras(gt / "cameras.json", cameras, session=name)
+
+    # --------------------------------------------------------- calibration
+    t1 = time.perf_counter()
+    poses, _visible = make_board_poses(cameras, spec.board, n_poses=int(p["calib_poses"]), seed=seed + 1)
+    for cam in cameras:
+        for n, (Rb, tb) in enumerate(poses):
+            img = render_board(cam, spec.board, Rb, tb, noise_sigma=float(p["noise_sigma"]),
+                               seed=seed * 1000 + n)
+            _write_png(tmp_dir / "calib" / cam.id / f"{n}.png", img)
+    say(f"calibration images: {len(cameras)} cameras x {len(poses)} poses")
+    save_npz(gt / "board_poses.npz", R=np.array([r for r, _ in poses]), t=np.array([t for _, t in poses]))
+    timings["calib_images_s"] = time.perf_counter() - t1
+
+    # ----------------------------------------------------------------- ROM
+    t2 = time.perf_counter()
+    texture = speckle_texture(2048 if W >= 1000 else 1024, seed=seed)
+    dots = None
+    if p["paint_markers"]:
+        dots = np.zeros(actor.n_vertices)
+        dots[actor.marker_vertices] = 1.0
+    rom_cfg = p["rom"]
+    seqs = make_rom_weights(actor.shape_names, len(spec.rom), int(rom_cfg["frames_per_sequence"]),
+                            seed=seed + 2, coverage=int(rom_cfg["coverage"]))
+    n_images = 0
+    for s, (seq, Wseq) in enumerate(zip(spec.rom, seqs)):
+        R, t = make_head_motion(Wseq.shape[0], seed=seed + 100 + s,
+                                max_rotation_deg=float(rom_cfg["max_rotation_deg"]),
+                                max_translation_mm=float(rom_cfg["max_translation_mm"]))
+        # rigid motion about the face centre: x' = R (x - c) + c + t  ->  R x + (c - R c + t)
+        t_world = face_centre[None] - np.einsum("fij,j->fi", R, face_centre) + t
+        verts = actor.evaluate(Wseq)
+        verts = np.einsum("fij,fvj->fvi", R, verts) + t_world[:, None, :]
+        for i, frame in enumerate(seq.frames):
+            mesh = TexturedMesh(verts[i], actor.faces, actor.uvs, actor.face_uvs, texture, dots=dots)
+            for cam in cameras:
+                res = render_mesh(cam, mesh, noise_sigma=float(p["noise_sigma"]), seed=seed * 7919 + s * 1000 + i)
+                _write_png(spec.rom_image(seq.name, cam.id, frame), res.color)
+                n_images += 1
+        save_npz(gt / "rom" / f"{seq.name}.npz", vertices=verts.astype(np.float32), weights=Wseq.astype(np.float32),
+                 rotation=R.astype(np.float32), translation=t_world.astype(np.float32),
+                 shape_names=np.asarray(actor.shape_names), frames=np.asarray(seq.frames))
+        say(f"ROM {seq.name}: {len(seq.frames)} frames x {len(cameras)} cameras")
+    timings["rom_images_s"] = time.perf_counter() - t2
+    timings["rom_images"] = n_images
+
+    # --------------------------------------------------------- performance
+    pc = p["performance"]
+    fps = float(pc["fps"])
+    n_frames = int(round(float(pc["duration_s"]) * fps))
+    for i, perf in enumerate(spec.performances):
+        Wp = make_performance_weights(actor.shape_names, n_frames, fps, seed=seed + 500 + i)
+        R, t = make_head_motion(n_frames, seed=seed + 600 + i, max_rotation_deg=4.0, max_translation_mm=6.0)
+        t_world = face_centre[None] - np.einsum("fij,j->fi", R, face_centre) + t
+        clean = markers_from_rig(actor, Wp, R, t_world)
+        noisy = markers_from_rig(actor, Wp, R, t_world, noise_mm=float(pc["noise_mm"]),
+                                 gap_fraction=float(pc["gap_fraction"]), seed=seed + 700 + i)
+        write_markers_c3d(tmp_dir / perf.file, noisy, actor.marker_names, fps)
+        save_npz(gt / "performances" / f"{perf.name}.npz", weights=Wp.astype(np.float32),
+                 shape_names=np.asarray(actor.shape_names), markers=clean.astype(np.float32),
+                 marker_vertices=actor.marker_vertices, marker_names=np.asarray(actor.marker_names),
+                 rotation=R.astype(np.float32), translation=t_world.astype(np.float32), fps=np.float64(fps))
+    write_session(plan, tmp_dir)
+    timings["total_s"] = time.perf_counter() - t0
+    write_json(gt / "generation.json", {"timings": timings, "params": p})
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    os.replace(tmp_dir, out_dir)
+    return timings
