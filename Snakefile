@@ -1,0 +1,18 @@
+# rigbuild: capture session -> calibrated cameras -> reconstructed ROM -> tracked meshes ->
+# personalized rig -> retargeted animation -> report.  `snakemake --cores 2` runs config/config.yaml.
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+configfile: "config/config.yaml"
+
+
+include: "rules/common.smk"
+include: "rules/synth.smk"
+
+
+rule all:
+    input:
+        [session_yaml(s) for s in SESSIONS],
+    default_target: True

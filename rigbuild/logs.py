@@ -1,0 +1,43 @@
+"""Logging for Snakemake entry points: every rule logs to its ``log:`` file."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import sys
+import time
+import traceback
+from pathlib import Path
+from typing import Any, Callable
+
+
+def run_logged(snakemake: Any, main: Callable[[Any], None]) -> None:
+    """Run ``main(snakemake)`` with stdout/stderr and the ``rigbuild`` logger going to the rule's log.
+
+    On an exception the traceback is written to the log and the error's message is printed to the
+    real stderr (so the user sees 'file: what is wrong / fix: ...' in the Snakemake output), then the
+    process exits non-zero.
+    """
+    log_path = Path(snakemake.log[0]) if len(snakemake.log) else None
+    if log_path is None:
+        main(snakemake)
+        return
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    real_stderr = sys.stderr
+    with open(log_path, "w", buffering=1) as fh, contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):
+        handler = logging.StreamHandler(fh)
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        logger = logging.getLogger("rigbuild")
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
+        t0 = time.perf_counter()
+        try:
+            main(snakemake)
+        except Exception as exc:
+            traceback.print_exc(file=fh)
+            print(f"\nrigbuild error in rule {getattr(snakemake, 'rule', '?')}: {exc}\n  (log: {log_path})",
+                  file=real_stderr)
+            raise SystemExit(1) from None
+        finally:
+            logger.removeHandler(handler)
+            print(f"elapsed {time.perf_counter() - t0:.2f} s", file=fh)

@@ -1,0 +1,112 @@
+# Helpers shared by the rule modules: config validation, session lookup, target lists.
+import os
+from pathlib import Path
+
+from snakemake.utils import validate
+
+from rigbuild.errors import InputError
+from rigbuild.session import read_session, session_from_dict
+from rigbuild.synth.session import plan_session
+
+validate(config, schema="../workflow/schemas/config.schema.json")
+config.setdefault("characters", {})
+config.setdefault("params", {})
+for _stage in ("calibrate", "reconstruct", "track", "personalize", "retarget", "report"):
+    config["params"].setdefault(_stage, {})
+
+SESSIONS = list(config["sessions"])
+CHARACTERS = list(config["characters"])
+
+
+def session_dir(session):
+    """The session folder (absolute path)."""
+    p = Path(config["sessions"][session]["path"])
+    return p if p.is_absolute() else Path(workflow.basedir) / p
+
+
+def is_synthetic(session):
+    return "synthetic" in config["sessions"][session]
+
+
+def session_spec(session):
+    """The session's SessionSpec: read from session.yaml, or planned from the synthetic block before
+    the session is generated (so the DAG is known up front)."""
+    folder = session_dir(session)
+    if (folder / "session.yaml").exists() or not is_synthetic(session):
+        return read_session(folder)
+    return session_from_dict(plan_session(session, config["sessions"][session]["synthetic"]), folder,
+                             source=f"config: sessions.{session}.synthetic")
+
+
+def session_yaml(session):
+    return str(session_dir(session) / "session.yaml")
+
+
+def check_rig_spec(spec, where):
+    """Fail at DAG start when a rig spec points nowhere."""
+    if spec in ("procedural", "ict"):
+        if spec == "ict":
+            from rigbuild.paths import ict_dir
+
+            if not (ict_dir() / "generic_neutral_mesh.obj").exists():
+                raise InputError(f"field '{where}': the ICT rig needs ICT-FaceKit at {ict_dir()}",
+                                 path="config", fix="set RIGBUILD_DATA to the folder holding ict-facekit/")
+        return
+    p = Path(spec) if Path(spec).is_absolute() else Path(workflow.basedir) / spec
+    if not p.exists():
+        raise InputError(f"field '{where}': rig '{spec}' not found ({p})", path="config",
+                         fix="give procedural, ict, an OBJ folder with neutral.obj or a rig .npz")
+
+
+# Validate every session and rig at DAG start: errors name the file and the field.
+for _s in SESSIONS:
+    _spec = session_spec(_s)
+    check_rig_spec(_spec.template_rig, f"sessions.{_s} template_rig")
+for _c, _cfg in config["characters"].items():
+    check_rig_spec(_cfg["rig"], f"characters.{_c}.rig")
+
+
+def check_shape_names():
+    """`shapes:` (optional) restricts the template rig's shapes; every name must exist in every
+    session's template rig."""
+    if not config.get("shapes"):
+        return
+    from rigbuild.io.rigs import load_rig
+
+    for s in SESSIONS:
+        spec = session_spec(s).template_rig
+        rig = load_rig(spec if spec in ("procedural", "ict") else str(Path(workflow.basedir) / spec))
+        unknown = [n for n in config["shapes"] if n not in rig.shape_names]
+        if unknown:
+            raise InputError(f"field 'shapes': unknown shape names {unknown} for template rig '{spec}'",
+                             path="config", fix=f"use names from: {', '.join(rig.shape_names)}")
+
+
+check_shape_names()
+
+
+def results(session, *parts):
+    return str(Path("results") / session / Path(*parts)) if parts else str(Path("results") / session)
+
+
+def calib_images(session):
+    spec = session_spec(session)
+    if is_synthetic(session) and not (session_dir(session) / "session.yaml").exists():
+        return []  # produced by the synth rule together with session.yaml
+    return [str(p) for cam in spec.cameras for p in spec.calib_images(cam)]
+
+
+def rom_images(session, sequence):
+    spec = session_spec(session)
+    seq = spec.sequence(sequence)
+    if is_synthetic(session) and not (session_dir(session) / "session.yaml").exists():
+        return []
+    return [str(spec.rom_image(sequence, cam, f)) for f in seq.frames for cam in spec.cameras]
+
+
+def sequences(session):
+    return [s.name for s in session_spec(session).rom]
+
+
+def performances(session):
+    return [p.name for p in session_spec(session).performances]
