@@ -1,0 +1,63 @@
+"""Synthetic capture generation speed: seconds per rendered image (default and realistic resolution)
+and the time to generate the whole demo session. Goals (foundation issue): < 0.5 s per 1280x960 image,
+demo session < 2 minutes.
+
+    .venv/bin/python benchmarks/bench_synth.py
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import print_table, write_result  # noqa: E402
+
+from rigbuild.io.rigs import load_rig  # noqa: E402
+from rigbuild.paths import PROJECT_ROOT, ict_dir  # noqa: E402
+from rigbuild.render import render_mesh  # noqa: E402
+from rigbuild.render.mesh import TexturedMesh, speckle_texture  # noqa: E402
+from rigbuild.synth.rig_layout import make_camera_rig  # noqa: E402
+from rigbuild.synth.session import generate_session  # noqa: E402
+
+
+def time_renders(rig_spec: str, width: int, height: int, backend: str, n: int = 5) -> float:
+    rig = load_rig(rig_spec)
+    cams = make_camera_rig(n_cameras=4, width=width, height=height, target=rig.neutral[rig.face_vertices].mean(0))
+    mesh = TexturedMesh(rig.neutral, rig.faces, rig.uvs, rig.face_uvs, speckle_texture(2048 if width >= 1000 else 1024, 0))
+    render_mesh(cams[0], mesh, backend=backend)  # warm-up (context, texture upload)
+    t = []
+    for i in range(n):
+        t0 = time.perf_counter()
+        render_mesh(cams[i % 4], mesh, noise_sigma=1.5, seed=i, backend=backend)
+        t.append(time.perf_counter() - t0)
+    return float(np.median(t))
+
+
+def main() -> None:
+    rows = []
+    specs = ["procedural"] + (["ict"] if (ict_dir() / "generic_neutral_mesh.obj").exists() else [])
+    for spec in specs:
+        for (w, h) in [(640, 480), (1280, 960)]:
+            for backend in ("gl", "embree"):
+                s = time_renders(spec, w, h, backend, n=5 if backend == "gl" else 2)
+                rows.append({"rig": spec, "resolution": f"{w}x{h}", "backend": backend, "s_per_image": s,
+                             "goal_s": 0.5 if w >= 1280 else None})
+    cfg = yaml.safe_load((PROJECT_ROOT / "config" / "config.yaml").read_text())
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        timings = generate_session(Path(tmp) / "demo", "demo", cfg["sessions"]["demo"]["synthetic"])
+        demo_s = time.perf_counter() - t0
+    print_table(rows, ["rig", "resolution", "backend", "s_per_image", "goal_s"])
+    print(f"\ndemo session generation: {demo_s:.1f} s (goal < 120 s); {timings}")
+    write_result("synth", {"renders": rows, "demo_session_s": demo_s, "demo_session_goal_s": 120.0,
+                           "demo_timings": timings})
+
+
+if __name__ == "__main__":
+    main()
