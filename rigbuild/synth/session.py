@@ -161,10 +161,6 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
     # ----------------------------------------------------------------- ROM
     t2 = time.perf_counter()
     texture = speckle_texture(2048 if W >= 1000 else 1024, seed=seed)
-    dots = None
-    if p["paint_markers"]:
-        dots = np.zeros(actor.n_vertices)
-        dots[actor.marker_vertices] = 1.0
     rom_cfg = p["rom"]
     seqs = make_rom_weights(actor.shape_names, len(spec.rom), int(rom_cfg["frames_per_sequence"]),
                             seed=seed + 2, coverage=int(rom_cfg["coverage"]))
@@ -178,7 +174,8 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
         verts = actor.evaluate(Wseq)
         verts = np.einsum("fij,fvj->fvi", R, verts) + t_world[:, None, :]
         for i, frame in enumerate(seq.frames):
-            mesh = TexturedMesh(verts[i], actor.faces, actor.uvs, actor.face_uvs, texture, dots=dots)
+            dots = verts[i][actor.marker_vertices] if p["paint_markers"] else None
+            mesh = TexturedMesh(verts[i], actor.faces, actor.uvs, actor.face_uvs, texture, dot_centers=dots)
             for cam in cameras:
                 res = render_mesh(cam, mesh, noise_sigma=float(p["noise_sigma"]), seed=seed * 7919 + s * 1000 + i)
                 _write_png(spec.rom_image(seq.name, cam.id, frame), res.color)

@@ -1,0 +1,132 @@
+"""Build the self-contained HTML session report.
+
+Every stage section shows its numbers from ``metrics.json`` with pass/warn/fail against the thresholds
+(:mod:`rigbuild.eval.thresholds`, overridable in the config) and the pictures the stage wrote. Images
+are embedded as base64 so the file opens offline; rule timings come from Snakemake ``benchmark:`` files.
+"""
+
+from __future__ import annotations
+
+import base64
+import csv
+import html
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from rigbuild.eval.thresholds import status
+from rigbuild.io.metrics import flatten_metrics
+
+
+@dataclass
+class Section:
+    """A report section: ``stage`` is the metrics.json key; ``images`` glob patterns under results/<s>/."""
+
+    id: str
+    title: str
+    stage: str | Sequence[str]
+    images: Sequence[str]
+    caption: str
+    max_images: int = 12
+
+
+SECTIONS = [
+    Section("calibration", "Calibration", "calibration", ["calib/residuals.png", "calib/camera_layout.png"],
+            "Reprojection residuals per camera and the camera layout. Re-shoot cameras whose RMS fails."),
+    Section("reconstruction", "Reconstruction", "reconstruction", ["reconstruct/*/coverage.png"],
+            "Per-frame coverage of the multi-view stereo (fraction of the face seen by 2+ views)."),
+    Section("tracking", "Tracking", "tracking",
+            ["track/*/residuals.png", "track/*/overlay/*.png"],
+            "Tracking residual over time and the tracked mesh over the images. Lost frames are listed in the metrics."),
+    Section("personalization", "Personalization", "personalization",
+            ["personalize/convergence.png", "personalize/heatmaps/*.png"],
+            "EM objective per iteration (must not increase) and per-shape change against the initial rig."),
+    Section("retargeting", "Retargeting", ["retarget"],
+            ["retarget/*/*/*/curves.png", "retarget/*/*/*/velocity_error.png", "retarget/*/*/*/preview.png"],
+            "Weight curves per character (against ground truth where it exists), velocity error, and "
+            "actor/character side by side.", max_images=24),
+]
+
+_CSS = """
+body{font-family:system-ui,sans-serif;margin:2em;max-width:1200px;color:#222}
+h1{margin-bottom:0} .sub{color:#666;margin-top:.2em}
+section{border-top:2px solid #ddd;margin-top:2em;padding-top:.5em}
+table{border-collapse:collapse;margin:.5em 0} td,th{padding:3px 10px;border-bottom:1px solid #eee;text-align:left}
+td.num{text-align:right;font-variant-numeric:tabular-nums}
+.pass{background:#d8f5d0}.warn{background:#fff2c2}.fail{background:#ffd0d0}
+.badge{padding:1px 8px;border-radius:8px;font-weight:600}
+figure{display:inline-block;margin:6px;vertical-align:top} figure img{max-width:560px;border:1px solid #ccc}
+figcaption{font-size:12px;color:#555;max-width:560px;word-break:break-all}
+.summary span{margin-right:1em}
+"""
+
+
+def _img_tag(path: Path) -> str:
+    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    mime = "image/png" if path.suffix.lower() == ".png" else "image/jpeg"
+    return f'<img alt="{html.escape(path.name)}" src="data:{mime};base64,{data}">'
+
+
+def _metric_rows(metrics: Mapping[str, Any], stages: Sequence[str], thresholds: Mapping | None) -> tuple[str, dict]:
+    flat = flatten_metrics({k: v for k, v in metrics.items() if k in stages})
+    counts = {"pass": 0, "warn": 0, "fail": 0}
+    rows = []
+    for key in sorted(flat):
+        v = flat[key]
+        st = status(key, v, thresholds)
+        if st:
+            counts[st] += 1
+        text = f"{v:.4g}" if isinstance(v, float) else html.escape(str(v))
+        badge = f'<span class="badge {st}">{st}</span>' if st else ""
+        rows.append(f'<tr><td>{html.escape(key)}</td><td class="num">{text}</td><td>{badge}</td></tr>')
+    if not rows:
+        return "<p><em>No metrics for this stage.</em></p>", counts
+    return "<table><tr><th>metric</th><th>value</th><th>status</th></tr>" + "".join(rows) + "</table>", counts
+
+
+def _timings(results_dir: Path) -> str:
+    rows = []
+    for tsv in sorted((results_dir / "benchmarks").glob("*.tsv")):
+        with open(tsv) as fh:
+            rec = next(csv.DictReader(fh, delimiter="\t"), None)
+        if rec:
+            rows.append((tsv.stem, float(rec.get("s", "nan")), rec.get("max_rss", "")))
+    if not rows:
+        return "<p><em>No rule timings recorded.</em></p>"
+    total = sum(r[1] for r in rows)
+    body = "".join(f'<tr><td>{html.escape(n)}</td><td class="num">{s:.1f}</td><td class="num">{m}</td></tr>'
+                   for n, s, m in rows)
+    return (f"<p>{len(rows)} jobs, {total:.0f} s of job time in total.</p><table><tr><th>rule (job)</th>"
+            f"<th>seconds</th><th>max RSS (MB)</th></tr>{body}</table>")
+
+
+def build_report(results_dir: str | os.PathLike, session: str, metrics: Mapping[str, Any],
+                 thresholds: Mapping | None = None) -> str:
+    """The report HTML text for one session's results folder."""
+    results_dir = Path(results_dir)
+    parts, totals = [], {"pass": 0, "warn": 0, "fail": 0}
+    nav = []
+    for sec in SECTIONS:
+        stages = [sec.stage] if isinstance(sec.stage, str) else list(sec.stage)
+        table, counts = _metric_rows(metrics, stages, thresholds)
+        for k in totals:
+            totals[k] += counts[k]
+        figs = []
+        for pattern in sec.images:
+            for p in sorted(results_dir.glob(pattern))[: sec.max_images]:
+                rel = p.relative_to(results_dir)
+                figs.append(f"<figure>{_img_tag(p)}<figcaption>{html.escape(str(rel))}</figcaption></figure>")
+        verdict = "fail" if counts["fail"] else "warn" if counts["warn"] else "pass" if counts["pass"] else ""
+        badge = f' <span class="badge {verdict}">{verdict}</span>' if verdict else ""
+        nav.append(f'<a href="#{sec.id}">{sec.title}</a>')
+        parts.append(f'<section id="{sec.id}"><h2>{sec.title}{badge}</h2><p>{html.escape(sec.caption)}</p>'
+                     f'{table}<div>{"".join(figs) or "<p><em>No pictures for this stage.</em></p>"}</div></section>')
+    parts.append(f'<section id="timings"><h2>Timings</h2>{_timings(results_dir)}</section>')
+    nav.append('<a href="#timings">Timings</a>')
+    overall = "fail" if totals["fail"] else "warn" if totals["warn"] else "pass"
+    summary = (f'<p class="summary"><span class="badge {overall}">session {overall}</span>'
+               f'<span>{totals["pass"]} pass</span><span>{totals["warn"]} warn</span><span>{totals["fail"]} fail</span></p>')
+    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>rigbuild report: {html.escape(session)}</title>"
+            f"<style>{_CSS}</style></head><body><h1>rigbuild session report: {html.escape(session)}</h1>"
+            f"<p class='sub'>{' · '.join(nav)}</p>{summary}{''.join(parts)}</body></html>\n")

@@ -1,0 +1,816 @@
+"""Spacetime expression cloning for blendshapes (Seol, Lewis, Seo, Choi, Anjyo, Noh 2012).
+
+Every part of the paper, in marker space:
+
+- sec. 3.1 head motion removal by Procrustes against the source neutral, kept for re-synthesis:
+  :func:`remove_head_motion`, :func:`head_motion_about_pivot`, :func:`apply_head_motion`;
+- sec. 3.2 scale-proportion matching: an RBF warp ``d(x) = sum_i w_i |x - c_i| + q(x)`` (linear
+  polynomial ``q``) from the target's neutral markers to the source's, applied to the marker positions
+  of every target blendshape: :func:`fit_rbf_warp`, :func:`scale_proportion_match`;
+- sec. 4 movement matching ``min_W ||D (B W)^T - D S^T||_F^2`` with boundary frames (pins);
+- sec. 5 the PCA prior of the target's blendshapes ``E_prior = v^T Lambda^-1 v``,
+  ``v = E^T (B w + n_tgt - t_bar)``: :func:`build_pca_prior`; ``E = E_match + alpha E_prior`` solved as
+  one sparse system over all frames: :meth:`SeolSystem.solve`;
+- sec. 7 / fig. 11 the per-frame baselines (no constraint, weights in [-0.5, 1.5], PCA prior) and the
+  velocity error: :func:`solve_perframe_unconstrained`, :func:`solve_perframe_range`,
+  :func:`solve_perframe_prior`, :func:`velocity_error_per_frame`;
+- sec. 7.1 the Sobolev variant ``+ sum_t (B w_t - s_t)^T diag(beta_t) (B w_t - s_t)``, beta per marker
+  (region) and optionally only at chosen frames: ``beta`` of :class:`SeolSystem`, :func:`sobolev_beta`.
+
+Spacetime editing (sec. 6) is in :mod:`rigbuild.retarget.editing` and uses :meth:`SeolSystem.solve`
+on a frame window.
+
+The normal equations of ``E`` over frames are block tridiagonal in time (K x K blocks):
+``A_t = deg_t G + alpha P + Q_t``, off-diagonal ``-G`` with ``G = B^T B``, ``P = B^T E Lambda^-1 E^T B``,
+``Q_t = B^T diag(beta_t) B``. When every pin fixes whole frames and beta does not vary in time the
+matrix is the Kronecker sum ``L (x) G + I (x) (alpha P + Q)`` (L the path Laplacian of the free
+frames); a generalized eigendecomposition ``U^T G U = I, U^T (alpha P + Q) U = diag(mu)`` decouples it
+into K scalar tridiagonal systems ``(L + mu_k I) y_k = ...`` solved with one LAPACK ``gtsv`` call
+(:func:`_solve_kronecker`). Otherwise (pins of single shapes, frame-varying beta) a block Thomas
+(block LDL^T) recursion is used (:func:`solve_block_tridiagonal`). Both cost O(frames).
+
+Conventions: marker positions in mm; ``S`` is (F, 3M) source displacements from the source neutral
+after head motion removal, flattened marker-major (x, y, z per marker); ``B`` is (3M, K), the
+columns the target's (deformed) marker blendshape deltas; weights ``W`` are (F, K) (the paper's W^T).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+import scipy.linalg
+from scipy.linalg import lapack
+
+from rigbuild.errors import InputError
+from rigbuild.rig import Rig
+
+#: The paper's prior weight for movement matching (sec. 5, fig. 7(f)) and for per-frame matching
+#: with the prior (sec. 7, "Prior PF"); the hard range of "Range PF".
+DEFAULT_ALPHA = 0.01
+DEFAULT_ALPHA_PERFRAME = 0.5
+DEFAULT_WEIGHT_RANGE = (-0.5, 1.5)
+
+
+# ----------------------------------------------------------------------------- sec. 3.1 head motion
+def remove_head_motion(
+    markers: np.ndarray, neutral: np.ndarray, rigid_weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Procrustes head-motion removal (sec. 3.1).
+
+    Parameters
+    ----------
+    markers : (F, M, 3) mm, world space, NaN where a marker is missing.
+    neutral : (M, 3) mm, the source neutral pose ``Y`` (no NaN).
+    rigid_weights : (M,) non-negative weight of each marker in the fit (e.g. 1 on forehead / nose
+        markers, 0 on the lips), or None for all markers equally (the paper).
+
+    Returns
+    -------
+    stabilized : (F, M, 3) markers in the neutral's frame, ``R_f^T (x - t_f)`` (NaN kept).
+    R : (F, 3, 3), t : (F, 3) head motion, ``markers[f] ~ R[f] @ stabilized[f] + t[f]``.
+    """
+    X = np.asarray(markers, dtype=np.float64)
+    Y = np.asarray(neutral, dtype=np.float64)
+    F, M, _ = X.shape
+    if Y.shape != (M, 3) or not np.all(np.isfinite(Y)):
+        raise InputError(f"source neutral must be a finite ({M}, 3) array, got {Y.shape}")
+    from rigbuild.retarget.common import batched_rigid_fit
+
+    w = np.ones(M) if rigid_weights is None else np.asarray(rigid_weights, dtype=np.float64)
+    valid = np.all(np.isfinite(X), axis=2)
+    ok = valid & (w > 0)[None]
+    bad = np.flatnonzero(ok.sum(1) < 3)
+    if bad.size:
+        raise InputError(
+            f"frame {bad[0]}: only {int(ok[bad[0]].sum())} of the head-motion markers are visible (need 3)",
+            fix="fill the gaps in the take or give rigid_weights to markers that are visible in every frame",
+        )
+    # weighted Kabsch per frame (R Y + t ~ X), all frames at once
+    R, t = batched_rigid_fit(Y, np.where(ok[..., None], X, 0.0), np.where(ok, w[None], 0.0))
+    stabilized = np.einsum("fji,fmj->fmi", R, X - t[:, None, :])
+    return stabilized, R, t
+
+
+def refine_head_motion(
+    markers: np.ndarray, neutral: np.ndarray, B: np.ndarray, R: np.ndarray, t: np.ndarray,
+    rigid_weights: np.ndarray | None = None, iterations: int = 3,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Refine the Procrustes head motion jointly with per-frame expression weights (Gauss-Newton).
+
+    Procrustes against the neutral (sec. 3.1) is biased by the expression itself (a jaw opening
+    rotates the fit by several degrees when every marker counts). Each iteration linearizes
+    ``x_fm ~ R_f exp([omega_f]) (y_m + B_m w_f + tau_f) + t_f`` in (omega, tau, w) and solves all frames
+    with one batched weighted least squares (6 + K unknowns per frame); 2-3 iterations converge.
+
+    markers : (F, M, 3) with gaps filled; neutral : (M, 3); B : (3M, K) marker blendshapes of the
+    (scale-matched) target; R, t : initial head motion; rigid_weights : (M,) per-marker weights.
+    Returns stabilized (F, M, 3), R (F, 3, 3), t (F, 3).
+    """
+    from scipy.spatial.transform import Rotation
+
+    X = np.asarray(markers, dtype=np.float64)
+    Y = np.asarray(neutral, dtype=np.float64)
+    F, M, _ = X.shape
+    K = B.shape[1]
+    w = np.ones(M) if rigid_weights is None else np.asarray(rigid_weights, dtype=np.float64)
+    sw = np.sqrt(np.repeat(w, 3))
+    J = np.zeros((M, 3, 6 + K))
+    # omega x y_m = -[y_m]_x omega
+    J[:, 0, 1], J[:, 0, 2] = Y[:, 2], -Y[:, 1]
+    J[:, 1, 0], J[:, 1, 2] = -Y[:, 2], Y[:, 0]
+    J[:, 2, 0], J[:, 2, 1] = Y[:, 1], -Y[:, 0]
+    J[:, :, 3:6] = np.eye(3)
+    J[:, :, 6:] = B.reshape(M, 3, K)
+    Jw = J.reshape(3 * M, -1) * sw[:, None]
+    pinv = np.linalg.pinv(Jw)
+    R = np.array(R, dtype=np.float64, copy=True)
+    t = np.array(t, dtype=np.float64, copy=True)
+    for _ in range(int(iterations)):
+        stab = np.einsum("fji,fmj->fmi", R, X - t[:, None, :])
+        sol = ((stab - Y[None]).reshape(F, -1) * sw) @ pinv.T
+        Rd = Rotation.from_rotvec(sol[:, :3]).as_matrix()
+        t = t + np.einsum("fij,fj->fi", R, sol[:, 3:6])
+        R = R @ Rd
+    stab = np.einsum("fji,fmj->fmi", R, X - t[:, None, :])
+    return stab, R, t
+
+
+def head_motion_about_pivot(R: np.ndarray, t: np.ndarray, pivot: np.ndarray) -> np.ndarray:
+    """Translation of ``pivot`` (3,) under the head motion: ``d_f = R_f p + t_f - p`` (F, 3) mm.
+
+    With it the motion reads ``x' = R_f (x - p) + p + d_f``, which can be re-applied to a target
+    whose own pivot plays the role of ``p`` (:func:`apply_head_motion`).
+    """
+    p = np.asarray(pivot, dtype=np.float64)
+    return np.einsum("fij,j->fi", R, p) + t - p
+
+
+def apply_head_motion(points: np.ndarray, R: np.ndarray, pivot_translation: np.ndarray,
+                      pivot: np.ndarray) -> np.ndarray:
+    """Re-apply a head motion to target geometry (sec. 7, fig. 15).
+
+    points : (F, N, 3) or (N, 3) target positions without head motion; R : (F, 3, 3);
+    pivot_translation : (F, 3) from :func:`head_motion_about_pivot`; pivot : (3,) the target's pivot
+    (e.g. the centroid of its neutral markers). Returns (F, N, 3) ``R_f (x - pivot) + pivot + d_f``.
+    """
+    P = np.asarray(points, dtype=np.float64)
+    if P.ndim == 2:
+        P = np.broadcast_to(P, (R.shape[0],) + P.shape)
+    c = np.asarray(pivot, dtype=np.float64)
+    return np.einsum("fij,fnj->fni", R, P - c) + c + np.asarray(pivot_translation)[:, None, :]
+
+
+def fill_marker_gaps(markers: np.ndarray) -> np.ndarray:
+    """Fill NaN gaps (F, M, 3) by linear interpolation in time per marker (ends hold the nearest
+    sample). A marker missing in every frame is an :class:`InputError`."""
+    X = np.array(markers, dtype=np.float64, copy=True)
+    F, M, _ = X.shape
+    valid = np.all(np.isfinite(X), axis=2)
+    frames = np.arange(F)
+    for j in np.flatnonzero(~valid.all(axis=0)):
+        ok = valid[:, j]
+        if not ok.any():
+            raise InputError(f"marker {j} has no sample in any frame", fix="drop it from the marker map")
+        for c in range(3):
+            X[:, j, c] = np.interp(frames, frames[ok], X[ok, j, c])
+    return X
+
+
+# ------------------------------------------------------------------------- sec. 3.2 RBF warp
+@dataclass
+class RbfWarp:
+    """``d(x) = sum_i w_i |x - c_i| + a_0 + A x`` (sec. 3.2). centers (n, 3); weights (n, 3);
+    affine (4, 3) rows [1, x, y, z]."""
+
+    centers: np.ndarray
+    weights: np.ndarray
+    affine: np.ndarray
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """Warp points (..., 3) mm -> (..., 3) mm."""
+        x = np.asarray(x, dtype=np.float64)
+        flat = x.reshape(-1, 3)
+        r = np.linalg.norm(flat[:, None, :] - self.centers[None], axis=2)
+        out = r @ self.weights + self.affine[0] + flat @ self.affine[1:]
+        return out.reshape(x.shape)
+
+
+def fit_rbf_warp(centers: np.ndarray, targets: np.ndarray) -> RbfWarp:
+    """Fit the interpolating RBF with ``phi(r) = r`` plus a linear polynomial: ``d(c_i) = targets_i``.
+
+    centers : (n, 3) target-neutral marker positions; targets : (n, 3) source-neutral positions.
+    Solves ``[[Phi, P], [P^T, 0]] [w; a] = [targets; 0]`` (n + 4 unknowns per coordinate); ``d``
+    reproduces affine maps exactly. Needs n >= 4 non-coplanar centers.
+    """
+    c = np.asarray(centers, dtype=np.float64)
+    y = np.asarray(targets, dtype=np.float64)
+    n = c.shape[0]
+    if c.shape != y.shape or c.ndim != 2 or c.shape[1] != 3:
+        raise InputError(f"RBF: centers {c.shape} and targets {y.shape} must both be (n, 3)")
+    if n < 4 or np.linalg.matrix_rank(c - c.mean(0)) < 3:
+        raise InputError("RBF: need at least 4 non-coplanar corresponding markers",
+                         fix="map more markers between the source and the target")
+    Phi = np.linalg.norm(c[:, None, :] - c[None], axis=2)
+    P = np.hstack([np.ones((n, 1)), c])
+    A = np.zeros((n + 4, n + 4))
+    A[:n, :n] = Phi
+    A[:n, n:] = P
+    A[n:, :n] = P.T
+    rhs = np.zeros((n + 4, 3))
+    rhs[:n] = y
+    sol = np.linalg.solve(A, rhs)
+    return RbfWarp(centers=c, weights=sol[:n], affine=sol[n:])
+
+
+def scale_proportion_match(
+    target_neutral: np.ndarray, target_deltas: np.ndarray, source_neutral: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, RbfWarp]:
+    """Deform the target's marker blendshapes to the source's scale and proportion (sec. 3.2).
+
+    target_neutral : (M, 3) target neutral markers; target_deltas : (K, M, 3) marker deltas of the
+    target's shapes; source_neutral : (M, 3) source neutral markers (all mm).
+    Returns ``neutral* = d(n)`` (= source_neutral up to round-off), ``deltas*_k = d(n + b_k) - d(n)``
+    (K, M, 3), and the warp ``d``.
+    """
+    warp = fit_rbf_warp(target_neutral, source_neutral)
+    n_star = warp(target_neutral)
+    shapes_star = warp(np.asarray(target_neutral)[None] + np.asarray(target_deltas))
+    return n_star, shapes_star - n_star[None], warp
+
+
+# ---------------------------------------------------------------------------- sec. 5 PCA prior
+@dataclass
+class PcaPrior:
+    """PCA of the target's blendshapes taken as frames (sec. 5).
+
+    eigvecs : (3M, h) orthonormal ``E``; eigvals : (h,) ``lambda_k`` (mm^2, non-zero ones only);
+    mean_delta : (3M,) ``t_bar - n_tgt`` (mean of the training deltas).
+    """
+
+    eigvecs: np.ndarray
+    eigvals: np.ndarray
+    mean_delta: np.ndarray
+
+    def coefficients(self, deltas: np.ndarray) -> np.ndarray:
+        """``v = E^T (B w + n_tgt - t_bar)`` for flattened deltas (..., 3M) -> (..., h)."""
+        return (np.asarray(deltas) - self.mean_delta) @ self.eigvecs
+
+    def energy(self, deltas: np.ndarray) -> np.ndarray:
+        """``E_prior = v^T Lambda^-1 v`` per row of (..., 3M) deltas."""
+        v = self.coefficients(deltas)
+        return (v * v / self.eigvals).sum(-1)
+
+    def quadratic(self, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``E_prior(w) = w^T P w - 2 p^T w + const`` for ``B`` (3M, K): returns P (K, K), p (K,)."""
+        EB = self.eigvecs.T @ B
+        EBs = EB / self.eigvals[:, None]
+        P = EB.T @ EBs
+        p = EBs.T @ (self.eigvecs.T @ self.mean_delta)
+        return 0.5 * (P + P.T), p
+
+
+def build_pca_prior(training_deltas: np.ndarray, rel_tol: float = 1e-9) -> PcaPrior:
+    """PCA prior from training shapes (sec. 5): by default the target's own blendshape deltas, one
+    shape per "frame" (more animation frames of the target can be appended).
+
+    training_deltas : (N, 3M) flattened marker deltas (mm). Eigenvalues are those of the sample
+    covariance (divided by N); components with ``lambda <= rel_tol * lambda_max`` are dropped (the
+    paper keeps the ``h`` eigenvectors with non-zero eigenvalues).
+    """
+    X = np.asarray(training_deltas, dtype=np.float64)
+    mean = X.mean(0)
+    Xc = X - mean
+    _, sv, Vt = np.linalg.svd(Xc, full_matrices=False)
+    lam = sv**2 / X.shape[0]
+    keep = lam > rel_tol * max(lam.max(initial=0.0), 1e-300)
+    if not keep.any():
+        raise InputError("PCA prior: the training shapes do not move the markers")
+    return PcaPrior(eigvecs=Vt[keep].T.copy(), eigvals=lam[keep], mean_delta=mean)
+
+
+# -------------------------------------------------------------------- sec. 7.1 Sobolev weights
+def sobolev_beta(marker_names: Sequence[str], region_betas: Mapping[str, float],
+                 n_frames: int | None = None, frames: Sequence[int] | None = None) -> np.ndarray:
+    """Per-marker Sobolev weights ``beta`` (sec. 7.1) from regions given as name patterns.
+
+    region_betas : ``{regex: beta}`` matched (case-insensitive, ``re.search``) against marker names,
+    e.g. ``{"lip|mouth": 1.0, "lid": 0.5}``; a marker takes the largest matching beta, else 0.
+    frames : if given (with ``n_frames``), beta applies only at those frames (e.g. where the lips
+    must close) and the result is (n_frames, M); otherwise (M,) for every frame.
+    """
+    beta = np.zeros(len(marker_names))
+    for pattern, value in region_betas.items():
+        rx = re.compile(pattern, re.IGNORECASE)
+        hit = np.array([bool(rx.search(n)) for n in marker_names])
+        beta[hit] = np.maximum(beta[hit], float(value))
+    if frames is None:
+        return beta
+    if n_frames is None:
+        raise InputError("sobolev_beta: frames given without n_frames")
+    out = np.zeros((n_frames, beta.size))
+    fr = _frame_indices(frames, n_frames, "Sobolev frames")
+    out[fr] = beta
+    return out
+
+
+# ---------------------------------------------------------------------- block tridiagonal solvers
+def solve_block_tridiagonal(diag: np.ndarray, upper: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve a symmetric positive definite block tridiagonal system by block Thomas (block LDL^T).
+
+    diag : (n, K, K) diagonal blocks ``A_t``; upper : (n-1, K, K) blocks ``A_{t,t+1}`` (the lower
+    ones are their transposes); rhs : (n, K) or (n, K, c). Returns x with rhs's shape. O(n K^3).
+    """
+    n = diag.shape[0]
+    vec = rhs.ndim == 2
+    r = rhs[..., None] if vec else rhs
+    K, c = r.shape[1], r.shape[2]
+    Z = np.empty((max(n - 1, 0), K, K))
+    g = np.empty((n, K, c))
+    Dt = diag[0]
+    yt = r[0]
+    for t in range(n):
+        if t > 0:
+            O = upper[t - 1]
+            Dt = diag[t] - O.T @ Z[t - 1]
+            yt = r[t] - O.T @ g[t - 1]
+        if t < n - 1:
+            sol = np.linalg.solve(Dt, np.concatenate([upper[t], yt], axis=1))
+            Z[t] = sol[:, :K]
+            g[t] = sol[:, K:]
+        else:
+            g[t] = np.linalg.solve(Dt, yt)
+    x = np.empty_like(g)
+    x[n - 1] = g[n - 1]
+    for t in range(n - 2, -1, -1):
+        x[t] = g[t] - Z[t] @ x[t + 1]
+    return x[..., 0] if vec else x
+
+
+def _path_laplacian_free(n: int, free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Diagonal (nf,) and super-diagonal (nf-1,) of the path Laplacian over n frames restricted to
+    the free frames (indices ``free``, sorted); the super-diagonal is -1 between consecutive free
+    frames that are neighbours in time, else 0."""
+    deg = np.full(n, 2.0)
+    if n >= 1:
+        deg[0] -= 1.0
+        deg[-1] -= 1.0
+    d = deg[free]
+    off = np.where(np.diff(free) == 1, -1.0, 0.0)
+    return d, off
+
+
+def _solve_kronecker(Ldiag: np.ndarray, Loff: np.ndarray, G: np.ndarray, Pc: np.ndarray,
+                     rhs: np.ndarray, eig: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Solve ``(L (x) G + I (x) Pc) vec(X) = vec(rhs)`` for X (nf, K), L tridiagonal (Ldiag, Loff).
+
+    Generalized eigendecomposition ``U^T G U = I``, ``U^T Pc U = diag(mu)`` (``eig = (mu, U)`` if
+    precomputed) turns it into K scalar tridiagonal systems ``(L + mu_k I) y_k = (rhs U)_k``, stacked
+    shape-major into one LAPACK ``gtsv`` call.
+    """
+    nf, K = rhs.shape
+    mu, U = scipy.linalg.eigh(Pc, G) if eig is None else eig
+    Y = rhs @ U  # (nf, K)
+    d = (Ldiag[None, :] + mu[:, None]).reshape(-1)
+    off = np.zeros((K, nf))
+    off[:, : nf - 1] = Loff[None, :]
+    e = off.reshape(-1)[:-1]
+    _, _, _, y, info = lapack.dgtsv(e.copy(), d, e.copy(), Y.T.reshape(-1).copy())
+    if info != 0:
+        raise np.linalg.LinAlgError(f"tridiagonal solve failed (info={info}): the system is singular")
+    return y.reshape(K, nf).T @ U.T
+
+
+def _frame_indices(frames: Sequence[int], n_frames: int, what: str) -> np.ndarray:
+    out = []
+    for f in frames:
+        fi = int(f)
+        if fi < -n_frames or fi >= n_frames:
+            raise InputError(
+                f"{what}: frame {fi} is outside the sequence (frames 0..{n_frames - 1})",
+                fix=f"use frames between 0 and {n_frames - 1} (negative values count from the end)",
+            )
+        out.append(fi % n_frames)
+    return np.asarray(out, dtype=np.int64)
+
+
+# ------------------------------------------------------------------------------ the system
+@dataclass
+class SeolSystem:
+    """Everything the spacetime solve and later edits need (save it next to the weight curves).
+
+    B : (3M, K) target marker blendshapes after scale-proportion matching, mm.
+    S : (F, 3M) source marker displacements from the source neutral, head motion removed, mm.
+    prior_P, prior_p : the prior as ``w^T P w - 2 p^T w`` (:meth:`PcaPrior.quadratic`).
+    alpha : prior weight (sec. 5; the paper's 0.01).
+    beta : None, (M,) per-marker Sobolev weight (sec. 7.1), or (F, M) per frame and marker.
+    ridge : relative Tikhonov weight on velocities (``+ ridge * tr(G)/K * ||w_t - w_{t-1}||^2``) so
+        that shapes the markers do not see stay determined; 1e-6 leaves the solution unchanged in
+        practice.
+    shape_names : K names; marker_names : M names.
+    """
+
+    B: np.ndarray
+    S: np.ndarray
+    prior_P: np.ndarray
+    prior_p: np.ndarray
+    alpha: float = DEFAULT_ALPHA
+    beta: np.ndarray | None = None
+    ridge: float = 1e-6
+    shape_names: list[str] = field(default_factory=list)
+    marker_names: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.B = np.asarray(self.B, dtype=np.float64)
+        self.S = np.asarray(self.S, dtype=np.float64)
+        if self.B.ndim != 2 or self.S.ndim != 2 or self.S.shape[1] != self.B.shape[0]:
+            raise InputError(f"SeolSystem: B {self.B.shape} and S {self.S.shape} do not match (need (3M,K), (F,3M))")
+        if not np.all(np.isfinite(self.S)):
+            raise InputError("SeolSystem: the source displacements contain NaN (fill the marker gaps first)")
+        if self.beta is not None:
+            self.beta = np.asarray(self.beta, dtype=np.float64)
+            M = self.B.shape[0] // 3
+            if self.beta.shape not in ((M,), (self.n_frames, M)):
+                raise InputError(f"Sobolev beta must be ({M},) or ({self.n_frames}, {M}), got {self.beta.shape}")
+            if np.any(self.beta < 0):
+                raise InputError("Sobolev beta must be non-negative")
+        self._G = self.B.T @ self.B
+        scale = max(np.trace(self._G) / max(self.n_shapes, 1), 1e-12)
+        self._G_reg = self._G + self.ridge * scale * np.eye(self.n_shapes)
+        self._pos_eps = 1e-10 * scale
+        self._SB = self.S @ self.B  # (F, K): B^T s_t for every frame
+        self._eig: tuple[np.ndarray, np.ndarray] | None = None  # (mu, U) of the constant-in-time case
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.S.shape[0])
+
+    @property
+    def n_shapes(self) -> int:
+        return int(self.B.shape[1])
+
+    # -------------------------------------------------------------- pieces of the energy
+    def _beta3(self, frames: np.ndarray) -> np.ndarray | None:
+        """(n, 3M) per-coordinate Sobolev weights for ``frames`` or None."""
+        if self.beta is None:
+            return None
+        b = self.beta if self.beta.ndim == 2 else np.broadcast_to(self.beta, (self.n_frames, self.beta.size))
+        return np.repeat(b[frames], 3, axis=1)
+
+    def _position_terms(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Per-frame positional matrix (alpha P + Q_t + eps I) and rhs (alpha p + B^T beta_t s_t).
+
+        Returns Pc (K, K) if constant in time (flag True) else (n, K, K), and rhs (n, K).
+        """
+        K = self.n_shapes
+        base = self.alpha * self.prior_P + self._pos_eps * np.eye(K)
+        rhs = np.broadcast_to(self.alpha * self.prior_p, (frames.size, K)).copy()
+        b3 = self._beta3(frames)
+        if b3 is None:
+            return base, rhs, True
+        rhs += (b3 * self.S[frames]) @ self.B
+        if self.beta.ndim == 1:
+            return base + self.B.T @ (b3[0][:, None] * self.B), rhs, True
+        Q = np.einsum("ik,ti,il->tkl", self.B, b3, self.B, optimize=True)
+        return base[None] + Q, rhs, False
+
+    def solve(self, pin_mask: np.ndarray, pin_values: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """Minimize ``E = E_match + alpha E_prior (+ Sobolev)`` over frames ``start..stop-1``.
+
+        pin_mask : (n, K) bool, True where a weight is known (boundary condition); pin_values :
+        (n, K) the known values (ignored elsewhere); n = stop - start. Velocity terms only couple
+        frames inside the window (editing, sec. 6, solves only the range). Returns W (n, K).
+        """
+        stop = self.n_frames if stop is None else stop
+        n = stop - start
+        K = self.n_shapes
+        mask = np.asarray(pin_mask, dtype=bool)
+        vals = np.where(mask, np.asarray(pin_values, dtype=np.float64), 0.0)
+        if mask.shape != (n, K) or vals.shape != (n, K):
+            raise InputError(f"pins must be ({n}, {K}), got {mask.shape}")
+        frames = np.arange(start, stop)
+        G = self._G_reg
+        # movement rhs: (L SB)_t = B^T (v_t - v_{t+1}) with v_t = s_t - s_{t-1} inside the window
+        SB = self._SB[start:stop]
+        rv = np.zeros((n, K))
+        if n > 1:
+            dSB = np.diff(SB, axis=0)  # B^T v_t for t = 1..n-1
+            rv[1:] += dSB
+            rv[:-1] -= dSB
+        Pc, rpos, constant = self._position_terms(frames)
+        rhs = rv + rpos
+        full = mask.all(axis=1)
+        none = ~mask.any(axis=1)
+        W = vals.copy()
+        if constant and np.all(full | none):
+            free = np.flatnonzero(none)
+            if free.size == 0:
+                return W
+            # move pinned neighbours to the right-hand side: off-diagonal blocks are -G
+            pinned_rows = np.flatnonzero(full)
+            r = rhs.copy()
+            if pinned_rows.size:
+                GW = vals @ G  # row t: (G w_t)^T (G symmetric)
+                for off in (-1, 1):
+                    nb = pinned_rows + off
+                    ok = (nb >= 0) & (nb < n)
+                    r[nb[ok]] += GW[pinned_rows[ok]]
+            Ld, Lo = _path_laplacian_free(n, free)
+            if self._eig is None:  # Pc is the same for every window: decompose once
+                self._eig = scipy.linalg.eigh(Pc, G)
+            W[free] = _solve_kronecker(Ld, Lo, G, Pc, r[free], self._eig)
+            return W
+        # general path: block tridiagonal with pinned variables eliminated (identity rows)
+        deg = np.full(n, 2.0)
+        deg[0] -= 1.0
+        deg[-1] -= 1.0
+        A = deg[:, None, None] * G[None] + (Pc[None] if constant else Pc)
+        U = np.broadcast_to(-G, (max(n - 1, 0), K, K)).copy()
+        r = rhs.copy()
+        # r_t -= A_t[:, pinned] v + U_{t-1}^T ... contributions of known values
+        r -= np.einsum("tkl,tl->tk", A, vals)
+        if n > 1:
+            r[:-1] -= np.einsum("tkl,tl->tk", U, vals[1:])
+            r[1:] -= np.einsum("tlk,tl->tk", U, vals[:-1])
+        m = mask.astype(np.float64)
+        keep = 1.0 - m
+        A = A * keep[:, :, None] * keep[:, None, :]
+        ti, ki = np.nonzero(mask)
+        A[ti, ki, ki] = 1.0
+        if n > 1:
+            U = U * keep[:-1, :, None] * keep[1:, None, :]
+        r = np.where(mask, vals, r)
+        return solve_block_tridiagonal(A, U, r)
+
+    # ------------------------------------------------------------------------- pins helpers
+    def pins_for(self, boundary_frames: Sequence[int] = (0, -1),
+                 pins: Mapping[int, Mapping[str, float] | np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Pin mask / values (F, K): every weight 0 (neutral) at ``boundary_frames`` (default the
+        first and last frame), plus user pins ``{frame: {shape: value}}`` or ``{frame: (K,) array}``."""
+        F, K = self.n_frames, self.n_shapes
+        mask = np.zeros((F, K), bool)
+        vals = np.zeros((F, K))
+        mask[_frame_indices(boundary_frames, F, "boundary frames")] = True
+        for frame, v in (pins or {}).items():
+            f = int(_frame_indices([frame], F, "pinned frame")[0])
+            if isinstance(v, Mapping):
+                for name, value in v.items():
+                    k = shape_index(self.shape_names, name)
+                    mask[f, k] = True
+                    vals[f, k] = float(value)
+            else:
+                arr = np.asarray(v, dtype=np.float64).reshape(-1)
+                if arr.size != K:
+                    raise InputError(f"pinned frame {f}: {arr.size} weights for {K} shapes")
+                mask[f] = True
+                vals[f] = arr
+        return mask, vals
+
+    def solve_spacetime(self, boundary_frames: Sequence[int] = (0, -1),
+                        pins: Mapping[int, Mapping[str, float] | np.ndarray] | None = None) -> np.ndarray:
+        """The paper's retargeting: eq. (4) over all frames with boundary frames and pins. (F, K)."""
+        mask, vals = self.pins_for(boundary_frames, pins)
+        return self.solve(mask, vals)
+
+    # -------------------------------------------------------------------------- save / load
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the system to an npz (atomically) for later spacetime edits."""
+        from rigbuild.io.atomic import save_npz
+
+        save_npz(path, B=self.B, S=self.S, prior_P=self.prior_P, prior_p=self.prior_p,
+                 alpha=np.float64(self.alpha), ridge=np.float64(self.ridge),
+                 beta=np.zeros(0) if self.beta is None else self.beta,
+                 shape_names=np.asarray(self.shape_names, dtype=str),
+                 marker_names=np.asarray(self.marker_names, dtype=str))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "SeolSystem":
+        try:
+            z = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"cannot read the spacetime system: {exc}", path=path,
+                             fix="pass the system.npz written by the retarget_seol stage") from None
+        need = {"B", "S", "prior_P", "prior_p", "alpha", "shape_names"}
+        if not need <= set(z.files):
+            raise InputError(f"not a spacetime system file (missing {sorted(need - set(z.files))})", path=path)
+        beta = z["beta"] if "beta" in z.files and z["beta"].size else None
+        return cls(B=z["B"], S=z["S"], prior_P=z["prior_P"], prior_p=z["prior_p"], alpha=float(z["alpha"]),
+                   beta=beta, ridge=float(z["ridge"]) if "ridge" in z.files else 1e-6,
+                   shape_names=[str(s) for s in z["shape_names"]],
+                   marker_names=[str(s) for s in z["marker_names"]] if "marker_names" in z.files else [])
+
+
+def shape_index(shape_names: Sequence[str], name: str) -> int:
+    """Index of ``name`` in ``shape_names``; :class:`InputError` listing the known names if absent."""
+    try:
+        return list(shape_names).index(name)
+    except ValueError:
+        raise InputError(f"weight name '{name}' is not a shape of the rig",
+                         fix=f"use one of: {', '.join(shape_names)}") from None
+
+
+# -------------------------------------------------------------------- sec. 7 per-frame baselines
+def solve_perframe_unconstrained(B: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """"No Const": ``min ||B w_t - s_t||^2`` per frame (least squares). B (3M, K), S (F, 3M) -> (F, K)."""
+    return np.linalg.lstsq(B, np.asarray(S).T, rcond=None)[0].T
+
+
+def solve_perframe_prior(B: np.ndarray, S: np.ndarray, prior_P: np.ndarray, prior_p: np.ndarray,
+                         alpha: float = DEFAULT_ALPHA_PERFRAME) -> np.ndarray:
+    """"Prior PF": ``min ||B w_t - s_t||^2 + alpha E_prior(w_t)`` per frame (closed form). (F, K)."""
+    A = B.T @ B + alpha * prior_P
+    return np.linalg.solve(A, (np.asarray(S) @ B + alpha * prior_p).T).T
+
+
+def solve_perframe_range(B: np.ndarray, S: np.ndarray, bounds: tuple[float, float] = DEFAULT_WEIGHT_RANGE,
+                         tol: float = 1e-12) -> np.ndarray:
+    """"Range PF": ``min ||B w_t - s_t||^2`` subject to ``lo <= w <= hi`` per frame (Bregler et al. 2002).
+
+    Exact bounded-variable least squares (scipy ``lsq_linear``, method ``bvls``) per frame on the
+    reduced K x K problem ``||C^T w - C^-1 B^T s_t||`` with ``B^T B = C C^T`` (same minimizer).
+    B (3M, K), S (F, 3M) -> (F, K).
+    """
+    from scipy.optimize import lsq_linear
+
+    lo, hi = float(bounds[0]), float(bounds[1])
+    K = B.shape[1]
+    G = B.T @ B
+    C = np.linalg.cholesky(G + 1e-12 * max(np.trace(G) / K, 1e-12) * np.eye(K))
+    rhs = scipy.linalg.solve_triangular(C, (np.asarray(S) @ B).T, lower=True).T  # (F, K)
+    A = C.T
+    return np.array([lsq_linear(A, r, bounds=(lo, hi), method="bvls", tol=tol).x for r in rhs])
+
+
+# --------------------------------------------------------------------------- fig. 11 error
+def velocity_error_per_frame(W: np.ndarray, B: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """``||B (w_t - w_{t-1}) - (s_t - s_{t-1})||^2`` per frame (F,) mm^2 (frame 0: 0). Its sum is the
+    paper's ``||D (B W)^T - D S^T||_F^2`` (fig. 11 (a)); per-frame curves are fig. 11 (b)."""
+    R = np.diff(np.asarray(W), axis=0) @ B.T - np.diff(np.asarray(S), axis=0)
+    out = np.zeros(np.asarray(W).shape[0])
+    out[1:] = (R * R).sum(1)
+    return out
+
+
+# --------------------------------------------------------------------------- the whole method
+@dataclass
+class SeolResult:
+    """weights (F, K) of the spacetime solution; shape_names; head_rotation (F, 3, 3) and
+    head_translation (F, 3) = pivot translation of the source head (re-apply with
+    :func:`apply_head_motion` about ``target_pivot``); system for edits; baselines {name: (F, K)};
+    velocity_error {name: (F,)} per-frame curves (fig. 11) for "spacetime" and every baseline."""
+
+    weights: np.ndarray
+    shape_names: list[str]
+    head_rotation: np.ndarray
+    head_translation: np.ndarray
+    source_pivot: np.ndarray
+    target_pivot: np.ndarray
+    system: SeolSystem
+    warp: RbfWarp
+    baselines: dict[str, np.ndarray] = field(default_factory=dict)
+    velocity_error: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def target_marker_blendshapes(target: Rig, marker_names: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The target's neutral markers (M, 3) and marker deltas (K, M, 3), in ``marker_names`` order
+    (default: the rig's marker order), mm."""
+    rig = target if target.units == "mm" else target.to_units("mm")
+    if rig.marker_vertices.size == 0:
+        raise InputError(f"target rig '{rig.name}' has no marker set", fix="attach the marker set (Rig.with_markers)")
+    if marker_names is None:
+        idx = rig.marker_vertices
+    else:
+        pos = {n: i for i, n in enumerate(rig.marker_names)}
+        missing = [n for n in marker_names if n not in pos]
+        if missing:
+            raise InputError(f"markers {missing} are not on target rig '{rig.name}'",
+                             fix="use a marker map whose names exist on the target rig")
+        idx = rig.marker_vertices[[pos[n] for n in marker_names]]
+    return rig.neutral[idx], rig.deltas[:, idx, :]
+
+
+def retarget_seol(
+    source_markers: np.ndarray,
+    target: Rig,
+    marker_names: Sequence[str] | None = None,
+    source_neutral: np.ndarray | None = None,
+    alpha: float = DEFAULT_ALPHA,
+    boundary_frames: Sequence[int] = (0, -1),
+    pins: Mapping[int, Mapping[str, float] | np.ndarray] | None = None,
+    boundary_values: str = "neutral",
+    remove_head: bool = True,
+    rigid_weights: np.ndarray | str | None = "rigidity",
+    head_refine_iterations: int = 3,
+    beta: np.ndarray | None = None,
+    prior_training: np.ndarray | None = None,
+    prior_with_neutral: bool = True,
+    baselines: bool = True,
+    alpha_perframe: float = DEFAULT_ALPHA_PERFRAME,
+    weight_range: tuple[float, float] = DEFAULT_WEIGHT_RANGE,
+    ridge: float = 1e-6,
+) -> SeolResult:
+    """Retarget a marker performance onto a blendshape target (Seol et al. 2012, all sections).
+
+    Parameters
+    ----------
+    source_markers : (F, M, 3) mm, world space (or head-stabilized with ``remove_head=False``), NaN
+        for gaps; markers in the order of ``marker_names``.
+    target : the target rig with a marker set; markers are picked by ``marker_names`` (default: the
+        rig's own marker order, which must then match the source's).
+    source_neutral : (M, 3) the actor's neutral markers; default the first frame (the paper's actor
+        holds a neutral face at the start). Used for Procrustes (sec. 3.1), the RBF (sec. 3.2) and as
+        the origin of the displacements ``S``.
+    alpha : prior weight of eq. (4) (the paper: 0.01 with mm-scale faces).
+    boundary_frames : frames pinned to the neutral (all weights 0); default first and last.
+    pins : extra boundary conditions ``{frame: {shape: value}}`` or ``{frame: (K,) weights}``.
+    boundary_values : ``"neutral"`` (all weights 0 at ``boundary_frames``, the paper's protocol) or
+        ``"perframe"`` (the Range-PF per-frame solution at those frames, for takes that do not start
+        and end on a neutral face).
+    rigid_weights : (M,) marker weights for Procrustes, None for all markers equally (the paper), or
+        ``"rigidity"`` (default): markers the target's shapes move little count more
+        (:func:`rigbuild.retarget.common.rigidity_weights` of the scale-matched shapes).
+    head_refine_iterations : Gauss-Newton refinements of the head motion jointly with per-frame
+        weights (:func:`refine_head_motion`; 0 = the paper's plain Procrustes).
+    beta : Sobolev weights (M,) or (F, M) (sec. 7.1; :func:`sobolev_beta`), or None.
+    prior_training : (N, K) extra target weight vectors ("animations of the target") added to the
+        PCA training set after the one-shape-per-frame set.
+    prior_with_neutral : put the neutral face first in the PCA training "animation" (default).
+    baselines : also compute the sec. 7 per-frame baselines and all velocity-error curves.
+
+    Returns :class:`SeolResult`.
+    """
+    X = np.asarray(source_markers, dtype=np.float64)
+    if X.ndim != 3 or X.shape[2] != 3:
+        raise InputError(f"source markers must be (F, M, 3), got {X.shape}")
+    F, M, _ = X.shape
+    if F < 2:
+        raise InputError(f"the performance has {F} frame(s); spacetime retargeting needs at least 2")
+    n_tgt, d_tgt = target_marker_blendshapes(target, marker_names)
+    if n_tgt.shape[0] != M:
+        raise InputError(f"{M} source markers but {n_tgt.shape[0]} target markers",
+                         fix="pass marker_names so both sides use the same markers")
+    if source_neutral is None:
+        if not np.all(np.isfinite(X[0])):
+            filled = fill_marker_gaps(X)
+            source_neutral = filled[0]
+        else:
+            source_neutral = X[0]
+    Y = np.asarray(source_neutral, dtype=np.float64)
+    if Y.shape != (M, 3) or not np.all(np.isfinite(Y)):
+        raise InputError(f"source neutral must be a finite ({M}, 3) array, got {Y.shape}")
+    n_star, d_star, warp = scale_proportion_match(n_tgt, d_tgt, Y)
+    K = d_star.shape[0]
+    B = d_star.reshape(K, -1).T
+    if remove_head:
+        if isinstance(rigid_weights, str):
+            if rigid_weights != "rigidity":
+                raise InputError(f"rigid_weights '{rigid_weights}' unknown", fix="use 'rigidity', None or an (M,) array")
+            from rigbuild.retarget.common import rigidity_weights as _rigidity
+
+            rigid_weights = _rigidity(d_star)
+        _, R, t = remove_head_motion(X, Y, rigid_weights)
+        if head_refine_iterations > 0:
+            _, R, t = refine_head_motion(fill_marker_gaps(X), Y, B, R, t, rigid_weights, head_refine_iterations)
+        stab = np.einsum("fji,fmj->fmi", R, X - t[:, None, :])
+    else:
+        stab, R, t = X, np.broadcast_to(np.eye(3), (F, 3, 3)).copy(), np.zeros((F, 3))
+    stab = fill_marker_gaps(stab)
+    S = (stab - Y[None]).reshape(F, -1)
+    src_pivot = Y.mean(0)
+    head_d = head_motion_about_pivot(R, t, src_pivot)
+    # training "animation" (sec. 5): the neutral, then one blendshape per frame. Without the neutral
+    # frame the centred PCA has near-zero eigenvalues along directions where all shapes agree, which
+    # makes the neutral itself implausible and drives large cancelling weights.
+    train = np.vstack([np.zeros((1, 3 * M)), d_star.reshape(K, -1)]) if prior_with_neutral else d_star.reshape(K, -1)
+    if prior_training is not None:
+        pt = np.asarray(prior_training, dtype=np.float64)
+        if pt.ndim != 2 or pt.shape[1] != K:
+            raise InputError(f"prior training weights must be (N, {K}), got {pt.shape}")
+        train = np.vstack([train, pt @ d_star.reshape(K, -1)])
+    prior = build_pca_prior(train)
+    P, p = prior.quadratic(B)
+    names = list(target.shape_names)
+    mnames = list(marker_names) if marker_names is not None else list(target.marker_names)
+    system = SeolSystem(B=B, S=S, prior_P=P, prior_p=p, alpha=alpha, beta=beta, ridge=ridge,
+                       shape_names=names, marker_names=mnames)
+    if boundary_values == "neutral":
+        W = system.solve_spacetime(boundary_frames, pins)
+    elif boundary_values == "perframe":
+        fr = _frame_indices(boundary_frames, F, "boundary frames")
+        bpins = {int(f): v for f, v in zip(fr, solve_perframe_range(B, S[fr], weight_range))}
+        W = system.solve_spacetime((), {**bpins, **dict(pins or {})})
+    else:
+        raise InputError(f"boundary_values '{boundary_values}' unknown", fix="use 'neutral' or 'perframe'")
+    result = SeolResult(weights=W, shape_names=names, head_rotation=R, head_translation=head_d,
+                        source_pivot=src_pivot, target_pivot=n_tgt.mean(0), system=system, warp=warp)
+    result.velocity_error["spacetime"] = velocity_error_per_frame(W, B, S)
+    if baselines:
+        result.baselines["no_constraint"] = solve_perframe_unconstrained(B, S)
+        result.baselines["perframe_range"] = solve_perframe_range(B, S, weight_range)
+        result.baselines["perframe_prior"] = solve_perframe_prior(B, S, P, p, alpha_perframe)
+        for name, Wb in result.baselines.items():
+            result.velocity_error[name] = velocity_error_per_frame(Wb, B, S)
+    return result

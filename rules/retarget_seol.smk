@@ -1,0 +1,39 @@
+# Spacetime expression cloning (Seol et al. 2012): one job per (session, performance, character).
+# Needs from common.smk: session_spec, session_dir, CHARACTERS, results(); characters.smk builds
+# results/{session}/characters/{character}.npz. Params: config["params"]["retarget"]["seol"]
+# (keys: scripts/retarget_seol.py PARAMS).
+
+
+def _seol_performance(wc):
+    return str(session_spec(wc.session).performance_path(wc.performance))
+
+
+rule retarget_seol:
+    """Retarget a marker performance onto a character by movement matching + PCA prior; sec. 7
+    per-frame baselines and the fig. 11 velocity-error plot; system.npz for `rigbuild edit`."""
+    input:
+        performance=_seol_performance,
+        rig="results/{session}/characters/{character}.npz",
+    output:
+        weights="results/{session}/retarget/seol/{performance}/{character}/weights.csv",
+        weights_json="results/{session}/retarget/seol/{performance}/{character}/weights.json",
+        gltf="results/{session}/retarget/seol/{performance}/{character}/animation.gltf",
+        plot="results/{session}/retarget/seol/{performance}/{character}/velocity_error.png",
+        metrics="results/{session}/retarget/seol/{performance}/{character}/retarget_metrics.json",
+        system="results/{session}/retarget/seol/{performance}/{character}/system.npz",
+    params:
+        seol=lambda wc: config["params"]["retarget"].get("seol", {}),
+        character=lambda wc: wc.character,
+        performance=lambda wc: wc.performance,
+        metrics_path=lambda wc: results(wc.session, "metrics.json"),
+    log:
+        "logs/{session}/retarget/seol.{performance}.{character}.log",
+    benchmark:
+        "results/{session}/benchmarks/retarget_seol.{performance}.{character}.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    wildcard_constraints:
+        character="|".join(CHARACTERS) or "(?!)",
+    script:
+        "../scripts/retarget_seol.py"

@@ -1,0 +1,104 @@
+"""Snakemake entry point: spacetime expression cloning (Seol et al. 2012) of one performance onto one
+character, with the sec. 7 per-frame baselines and the fig. 11 velocity-error plot.
+
+input: performance (.c3d/.npz markers), rig (character .npz), optional neutral (tracked ROM markers
+.npz whose ``neutral_frame`` row is the actor's neutral; default: the performance's first frame).
+output: weights (.csv), weights_json, gltf, plot (.png), metrics (.json), system (.npz for edits).
+params: seol (dict, see PARAMS below), character, performance, metrics_path, neutral_frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from rigbuild.errors import InputError
+from rigbuild.io.atomic import write_json
+from rigbuild.io.markers import read_markers
+from rigbuild.io.metrics import merge_metrics
+from rigbuild.io.rigs import read_rig_npz
+from rigbuild.logs import run_logged
+from rigbuild.retarget.common import reorder_markers, write_weight_curves_csv, write_weight_curves_json
+from rigbuild.retarget.seol import retarget_seol, sobolev_beta
+from rigbuild.retarget.seol_outputs import plot_velocity_error, write_gltf_morph_animation
+
+log = logging.getLogger("rigbuild.retarget.seol")
+
+#: config params.retarget.seol keys and defaults
+PARAMS = {
+    "alpha": 0.01,                 # prior weight of eq. (4)
+    "alpha_perframe": 0.5,         # "Prior PF" baseline
+    "weight_range": [-0.5, 1.5],   # "Range PF" baseline
+    "boundary_frames": [0, -1],
+    "boundary_values": "neutral",  # neutral | perframe
+    "pins": {},                    # {frame: {shape: value}}
+    "rigid_weights": "rigidity",   # rigidity | uniform
+    "head_refine_iterations": 3,
+    "sobolev": None,               # {"regions": {regex: beta}, "frames": [..] or null}
+}
+
+
+def main(snakemake) -> None:
+    cfg = {**PARAMS, **dict(snakemake.params.get("seol", None) or {})}
+    unknown = sorted(set(cfg) - set(PARAMS))
+    if unknown:
+        raise InputError(f"unknown params.retarget.seol keys {unknown}", path="config", fix=f"use {sorted(PARAMS)}")
+    t0 = time.perf_counter()
+    take = read_markers(snakemake.input.performance)
+    rig = read_rig_npz(snakemake.input.rig)
+    names = [n for n in rig.marker_names if n in set(take.names)]
+    if len(names) < 4:
+        raise InputError(f"only {len(names)} markers of the take are on character '{rig.name}'",
+                         path=snakemake.input.performance, fix="use a character marker map with the take's marker names")
+    X = reorder_markers(take.markers, take.names, names, path=snakemake.input.performance)
+    neutral = None
+    if "neutral" in snakemake.input.keys():
+        rom = read_markers(snakemake.input.neutral)
+        frame = int(snakemake.params.get("neutral_frame", 0) or 0)
+        neutral = reorder_markers(rom.markers, rom.names, names, what="neutral sequence",
+                                  path=snakemake.input.neutral)[frame]
+    beta = None
+    if cfg["sobolev"]:
+        sob = cfg["sobolev"]
+        beta = sobolev_beta(names, sob.get("regions", {}), X.shape[0] if sob.get("frames") else None, sob.get("frames"))
+    rw = None if cfg["rigid_weights"] == "uniform" else cfg["rigid_weights"]
+    pins = {int(f): v for f, v in (cfg["pins"] or {}).items()}
+    res = retarget_seol(X, rig, marker_names=names, source_neutral=neutral, alpha=float(cfg["alpha"]),
+                        boundary_frames=cfg["boundary_frames"], pins=pins, boundary_values=cfg["boundary_values"],
+                        rigid_weights=rw, head_refine_iterations=int(cfg["head_refine_iterations"]), beta=beta,
+                        alpha_perframe=float(cfg["alpha_perframe"]), weight_range=tuple(cfg["weight_range"]))
+    seconds = time.perf_counter() - t0
+    fps = take.fps
+    out = snakemake.output
+    write_weight_curves_csv(out.weights, res.weights, res.shape_names, fps)
+    write_weight_curves_json(out.weights_json, res.weights, res.shape_names, fps,
+                             meta={"method": "seol2012", "alpha": cfg["alpha"], "character": rig.name})
+    write_gltf_morph_animation(out.gltf, rig, res.weights, fps, res.head_rotation, res.head_translation,
+                               pivot=res.target_pivot)
+    plot_velocity_error(out.plot, res.velocity_error, fps, title=f"{snakemake.params.performance} -> {rig.name}")
+    res.system.save(out.system)
+    char = snakemake.params.character
+    values = {"seconds": seconds, "n_frames": int(X.shape[0]), "n_markers": len(names)}
+    per_method = {}
+    for method, curve in res.velocity_error.items():
+        W = res.weights if method == "spacetime" else res.baselines[method]
+        per_method[method] = {"velocity_error": float(curve.sum()), "weight_min": float(W.min()),
+                              "weight_max": float(W.max())}
+    write_json(out.metrics, {"character": char, "performance": snakemake.params.performance, "params": cfg,
+                             **values, "methods": per_method})
+    keys = {"seol": "seol", "perframe_prior": "perframe_prior", "perframe_range": "perframe_range",
+            "no_constraint": "noconst"}
+    flat = {f"seol.{char}.{k}": v for k, v in values.items()}
+    for method, vals in per_method.items():
+        prefix = keys.get("seol" if method == "spacetime" else method, method)
+        for k, v in vals.items():
+            flat[f"{prefix}.{char}.{k}"] = v
+    merge_metrics(snakemake.params.metrics_path, "retarget", flat)
+    log.info("seol %s -> %s: %d frames in %.2f s, velocity error %.1f (Range PF %.1f, Prior PF %.1f)",
+             snakemake.params.performance, char, X.shape[0], seconds, per_method["spacetime"]["velocity_error"],
+             per_method["perframe_range"]["velocity_error"], per_method["perframe_prior"]["velocity_error"])
+
+
+run_logged(snakemake, main)  # noqa: F821
