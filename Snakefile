@@ -10,9 +10,22 @@ configfile: "config/config.yaml"
 
 include: "rules/common.smk"
 include: "rules/synth.smk"
+include: "rules/calibrate.smk"
+include: "rules/characters.smk"
+include: "rules/retarget_seol.smk"
+include: "rules/report.smk"
+
+
+def stage_targets(session):
+    """Every stage output of a session (the report depends on them all)."""
+    targets = [results(session, "calib", "cameras.json")]
+    for perf in performances(session):
+        for character in CHARACTERS:
+            targets.append(results(session, "retarget", "seol", perf, character, "weights.csv"))
+    return targets
 
 
 rule all:
     input:
-        [session_yaml(s) for s in SESSIONS],
+        [results(s, "report.html") for s in SESSIONS],
     default_target: True

@@ -6,7 +6,7 @@ from snakemake.utils import validate
 
 from rigbuild.errors import InputError
 from rigbuild.session import read_session, session_from_dict
-from rigbuild.synth.session import plan_session
+from rigbuild.synth.session import plan_session, planned_files
 
 validate(config, schema="../workflow/schemas/config.schema.json")
 config.setdefault("characters", {})
@@ -89,19 +89,31 @@ def results(session, *parts):
     return str(Path("results") / session / Path(*parts)) if parts else str(Path("results") / session)
 
 
+def synthetic_files(session):
+    """Files the synth rule writes for a synthetic session (absolute paths); [] for real sessions."""
+    if not is_synthetic(session):
+        return []
+    folder = session_dir(session)
+    return [str(folder / f) for f in planned_files(session, config["sessions"][session]["synthetic"])]
+
+
 def calib_images(session):
+    """Calibration images: planned ones for synthetic sessions, the folder's for real ones."""
     spec = session_spec(session)
-    if is_synthetic(session) and not (session_dir(session) / "session.yaml").exists():
-        return []  # produced by the synth rule together with session.yaml
+    if is_synthetic(session):
+        return [f for f in synthetic_files(session) if "/calib/" in f]
     return [str(p) for cam in spec.cameras for p in spec.calib_images(cam)]
 
 
 def rom_images(session, sequence):
+    """ROM images of one sequence (every frame x every camera)."""
     spec = session_spec(session)
     seq = spec.sequence(sequence)
-    if is_synthetic(session) and not (session_dir(session) / "session.yaml").exists():
-        return []
     return [str(spec.rom_image(sequence, cam, f)) for f in seq.frames for cam in spec.cameras]
+
+
+def performance_file(session, performance):
+    return str(session_spec(session).performance_path(performance))
 
 
 def sequences(session):

@@ -4,15 +4,11 @@
 # (keys: scripts/retarget_seol.py PARAMS).
 
 
-def _seol_performance(wc):
-    return str(session_spec(wc.session).performance_path(wc.performance))
-
-
 rule retarget_seol:
     """Retarget a marker performance onto a character by movement matching + PCA prior; sec. 7
     per-frame baselines and the fig. 11 velocity-error plot; system.npz for `rigbuild edit`."""
     input:
-        performance=_seol_performance,
+        performance=lambda wc: performance_file(wc.session, wc.performance),
         rig="results/{session}/characters/{character}.npz",
     output:
         weights="results/{session}/retarget/seol/{performance}/{character}/weights.csv",

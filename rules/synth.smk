@@ -10,7 +10,7 @@ for _s in SESSIONS:
         name:
             f"synth_session_{_s}"
         output:
-            session_yaml(_s),
+            synthetic_files(_s),
         params:
             session=_s,
             synthetic=config["sessions"][_s]["synthetic"],

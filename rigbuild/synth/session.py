@@ -77,6 +77,19 @@ def plan_session(name: str, synthetic: dict | None) -> dict:
     }
 
 
+def planned_files(name: str, synthetic: dict | None) -> list[str]:
+    """Every file (relative to the session folder) a synthetic session will hold, ground truth excluded."""
+    p = synth_params(synthetic)
+    plan = plan_session(name, synthetic)
+    files = ["session.yaml"]
+    files += [f"calib/{cam}/{n}.png" for cam in plan["cameras"] for n in range(int(p["calib_poses"]))]
+    for seq in plan["rom"]:
+        first, last = seq["frames"]
+        files += [f"rom/{seq['name']}/{cam}/{f:06d}.png" for f in range(first, last + 1) for cam in plan["cameras"]]
+    files += [perf["file"] for perf in plan["performances"]]
+    return files
+
+
 def _write_png(path: Path, image: np.ndarray) -> None:
     import cv2
 
@@ -148,7 +161,8 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
 
     # --------------------------------------------------------- calibration
     t1 = time.perf_counter()
-    poses, _visible = make_board_poses(cameras, spec.board, n_poses=int(p["calib_poses"]), seed=seed + 1)
+    poses, seen_by = make_board_poses(cameras, spec.board, n_poses=int(p["calib_poses"]), seed=seed + 1,
+                                      center=face_centre)
     for cam in cameras:
         for n, (Rb, tb) in enumerate(poses):
             img = render_board(cam, spec.board, Rb, tb, noise_sigma=float(p["noise_sigma"]),
@@ -156,6 +170,7 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
             _write_png(tmp_dir / "calib" / cam.id / f"{n}.png", img)
     say(f"calibration images: {len(cameras)} cameras x {len(poses)} poses")
     save_npz(gt / "board_poses.npz", R=np.array([r for r, _ in poses]), t=np.array([t for _, t in poses]))
+    write_json(gt / "board_visibility.json", {"seen_fully_by": seen_by})
     timings["calib_images_s"] = time.perf_counter() - t1
 
     # ----------------------------------------------------------------- ROM

@@ -1,0 +1,31 @@
+# Issue 3: multi-camera rig calibration from ChArUco / chessboard images.
+# Uses from common.smk: config["params"]["calibrate"], session_yaml(session), calib_images(session).
+
+
+
+rule calibrate:
+    input:
+        session_yaml=lambda wc: session_yaml(wc.session),
+        images=lambda wc: calib_images(wc.session),
+    output:
+        cameras="results/{session}/calib/cameras.json",
+        colmap_cameras="results/{session}/calib/colmap/cameras.txt",
+        colmap_images="results/{session}/calib/colmap/images.txt",
+        colmap_points="results/{session}/calib/colmap/points3D.txt",
+        per_image="results/{session}/calib/reprojection_per_image.csv",
+        per_camera="results/{session}/calib/reprojection_per_camera.csv",
+        residuals_png=report("results/{session}/calib/residuals.png", category="Calibration"),
+        layout_png=report("results/{session}/calib/camera_layout.png", category="Calibration"),
+        metrics="results/{session}/calib/calib_metrics.json",
+    params:
+        calibrate=lambda wc: config["params"].get("calibrate", {}),
+        metrics=lambda wc: f"results/{wc.session}/metrics.json",
+    log:
+        "logs/{session}/calib/calibrate.log",
+    benchmark:
+        "results/{session}/benchmarks/calibrate.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../scripts/calibrate.py"
