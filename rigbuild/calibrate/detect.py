@@ -1,0 +1,182 @@
+"""Board corner detection: ChArUco (OpenCV 5 ``CharucoDetector``) and plain chessboards, subpixel.
+
+Every detector returns a :class:`Detection`: corner ids into ``BoardSpec.corner_points()`` and their
+pixel positions (OpenCV convention: pixel centres at integer coordinates). Images are read with
+:func:`read_gray`, which turns unreadable, truncated or wrongly sized files into an ``InputError``
+naming the file.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Mapping
+
+import cv2
+import numpy as np
+
+from rigbuild.errors import InputError
+from rigbuild.session import BoardSpec
+
+_PNG_END = b"IEND\xaeB`\x82"
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.1)
+
+
+@dataclass
+class Detection:
+    """Board corners found in one image.
+
+    ids : (N,) int corner ids (rows of ``BoardSpec.corner_points()``).
+    corners : (N, 2) float64 pixel positions (OpenCV pixel centres).
+    """
+
+    ids: np.ndarray
+    corners: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.ids = np.asarray(self.ids, dtype=np.int64).reshape(-1)
+        self.corners = np.asarray(self.corners, dtype=np.float64).reshape(-1, 2)
+
+    def __len__(self) -> int:
+        return int(self.ids.size)
+
+
+def _check_complete(path: Path, data: bytes) -> None:
+    """Raise InputError when a PNG/JPEG file is visibly truncated (decoders often only warn)."""
+    suffix = path.suffix.lower()
+    if suffix == ".png" and not data.rstrip(b"\x00").endswith(_PNG_END):
+        raise InputError("truncated PNG (no IEND chunk at the end)", path=path,
+                         fix="copy the image again from the capture machine or re-shoot it")
+    if suffix in (".jpg", ".jpeg") and b"\xff\xd9" not in data[-64:]:
+        raise InputError("truncated JPEG (no end-of-image marker)", path=path,
+                         fix="copy the image again from the capture machine or re-shoot it")
+
+
+def read_gray(path: str | os.PathLike, expected_size: tuple[int, int] | None = None) -> np.ndarray:
+    """Read an image as (H, W) uint8 grey.
+
+    ``expected_size`` is ``(width, height)``; a different size raises ``InputError`` naming the file.
+    Missing, unreadable and truncated files raise ``InputError`` too.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("image not found", path=path, fix="check the session folder layout calib/<cam>/<n>.png")
+    data = path.read_bytes()
+    if not data:
+        raise InputError("empty image file", path=path, fix="copy the image again or re-shoot it")
+    _check_complete(path, data)
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise InputError("unreadable image (not a PNG/JPEG OpenCV can decode)", path=path,
+                         fix="replace the file with the camera's original image")
+    if expected_size is not None:
+        w, h = int(expected_size[0]), int(expected_size[1])
+        if img.shape[1] != w or img.shape[0] != h:
+            raise InputError(f"image is {img.shape[1]}x{img.shape[0]} but session.yaml image_size is {w}x{h}",
+                             path=path, fix="use images of the size given in session.yaml (or fix image_size)")
+    return img
+
+
+def detect_charuco(gray: np.ndarray, board: BoardSpec, subpix_window: int = 0) -> Detection:
+    """ChArUco corners in a grey image.
+
+    OpenCV's ``CharucoDetector`` interpolates corners from the detected ArUco markers and refines them
+    with ``cornerSubPix`` (window chosen from the local marker scale). ``subpix_window > 0`` runs one
+    more ``cornerSubPix`` pass with that half-window (pixels); 0 keeps OpenCV's refinement.
+    """
+    det_params = cv2.aruco.DetectorParameters()
+    det_params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    detector = cv2.aruco.CharucoDetector(board.opencv_board(), cv2.aruco.CharucoParameters(), det_params)
+    ch_corners, ch_ids, _, _ = detector.detectBoard(gray)
+    if ch_ids is None or len(ch_ids) == 0:
+        return Detection(np.zeros(0, np.int64), np.zeros((0, 2)))
+    corners = ch_corners.reshape(-1, 2).astype(np.float32)
+    if subpix_window > 0:
+        corners = cv2.cornerSubPix(gray, corners.reshape(-1, 1, 2), (subpix_window, subpix_window), (-1, -1),
+                                   _SUBPIX_CRITERIA).reshape(-1, 2)
+    order = np.argsort(ch_ids.reshape(-1))
+    return Detection(ch_ids.reshape(-1)[order], corners[order])
+
+
+def detect_chessboard(gray: np.ndarray, board: BoardSpec, subpix_window: int = 5) -> Detection:
+    """Chessboard inner corners (all or none), refined with ``cornerSubPix``.
+
+    Follows OpenCV's calibration test recipe: ``findChessboardCorners`` with default flags, then
+    ``cornerSubPix`` with a ``(subpix_window, subpix_window)`` half-window and criteria EPS+COUNT 30, 0.1.
+    A chessboard is symmetric under a 180 degree turn, so the corner order is made canonical: corner 0 is
+    the one nearer the image's top-left (cameras of a rig must be roughly upright; ChArUco has no such limit).
+    """
+    nx, ny = board.squares_x - 1, board.squares_y - 1
+    found, corners = cv2.findChessboardCorners(gray, (nx, ny))
+    if not found:
+        return Detection(np.zeros(0, np.int64), np.zeros((0, 2)))
+    corners = cv2.cornerSubPix(gray, corners, (subpix_window, subpix_window), (-1, -1), _SUBPIX_CRITERIA)
+    corners = corners.reshape(-1, 2).astype(np.float64)
+    if corners[0].sum() > corners[-1].sum():
+        corners = corners[::-1].copy()
+    return Detection(np.arange(nx * ny), corners)
+
+
+def detect_board(gray: np.ndarray, board: BoardSpec, subpix_window: int | None = None) -> Detection:
+    """Dispatch on ``board.type`` (``charuco`` or ``chessboard``)."""
+    if board.type == "charuco":
+        return detect_charuco(gray, board, 0 if subpix_window is None else subpix_window)
+    if board.type == "chessboard":
+        return detect_chessboard(gray, board, 5 if subpix_window is None else subpix_window)
+    raise InputError(f"unknown board type '{board.type}'", fix="use 'charuco' or 'chessboard' in session.yaml board.type")
+
+
+def is_usable(det: Detection, board: BoardSpec, min_corners: int) -> bool:
+    """At least ``min_corners`` corners that are not all on one line (a homography needs 2-D spread)."""
+    if len(det) < max(min_corners, 4):
+        return False
+    pts = board.corner_points()[0][det.ids, :2]
+    sv = np.linalg.svd(pts - pts.mean(0), compute_uv=False)
+    return bool(sv[-1] > 0.25 * board.square_size_mm)
+
+
+def detect_images(
+    images: Mapping[str, Mapping[str, str | os.PathLike]],
+    board: BoardSpec,
+    image_size: tuple[int, int] | None = None,
+    subpix_window: int | None = None,
+) -> dict[str, dict[str, Detection]]:
+    """Detect the board in every image.
+
+    images : camera id -> view key -> image path. The view key names the board pose: images of
+        different cameras with the same key were taken at the same instant (synchronized capture).
+    image_size : ``(width, height)`` every image must have (InputError naming the file otherwise).
+
+    Returns camera id -> view key -> :class:`Detection` (possibly empty).
+    """
+    out: dict[str, dict[str, Detection]] = {}
+    for cam, views in images.items():
+        out[cam] = {}
+        for key, path in views.items():
+            out[cam][key] = detect_board(read_gray(path, image_size), board, subpix_window)
+    return out
+
+
+def session_images(spec) -> dict[str, dict[str, Path]]:
+    """camera id -> view key (file stem) -> path of the calibration images of a ``SessionSpec``.
+
+    Raises InputError naming the folder when a camera has no calibration images at all.
+    """
+    out: dict[str, dict[str, Path]] = {}
+    for cam in spec.cameras:
+        paths = spec.calib_images(cam)
+        if not paths:
+            raise InputError(f"camera '{cam}' has no calibration images", path=spec.calib_dir(cam),
+                             fix=f"put the board images of {cam} as calib/{cam}/<n>.png")
+        out[cam] = {p.stem: p for p in paths}
+    return out
+
+
+def count_corners(detections: Mapping[str, Mapping[str, Detection]]) -> int:
+    return sum(len(d) for views in detections.values() for d in views.values())
+
+
+def all_paths(images: Mapping[str, Mapping[str, Path]]) -> Iterable[Path]:
+    for views in images.values():
+        yield from views.values()

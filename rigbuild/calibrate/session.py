@@ -1,0 +1,247 @@
+"""Calibrate a session folder and write ``results/<session>/calib/``.
+
+Outputs (all written to a staging folder first and moved into place only when everything succeeded,
+so a failure - bad input or a QA gate - leaves nothing half-written):
+
+- ``cameras.json`` (same schema as ``ground_truth/cameras.json``; world = reference camera frame, mm)
+- ``colmap/cameras.txt, images.txt, points3D.txt`` (board corners as 3-D points, loadable by pycolmap)
+- ``reprojection_per_image.csv``, ``reprojection_per_camera.csv``
+- ``residuals.png``, ``camera_layout.png``
+- ``calib_metrics.json``
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from rigbuild.calibrate.detect import count_corners, detect_images, session_images
+from rigbuild.calibrate.rig import CalibrationOptions, RigCalibration, calibrate_rig
+from rigbuild.errors import InputError
+from rigbuild.io.atomic import write_json, write_text
+from rigbuild.io.cameras import write_cameras
+from rigbuild.io.colmap import write_colmap_text
+from rigbuild.session import SessionSpec, read_session
+
+OUTPUT_FILES = (
+    "cameras.json",
+    "colmap/cameras.txt",
+    "colmap/images.txt",
+    "colmap/points3D.txt",
+    "reprojection_per_image.csv",
+    "reprojection_per_camera.csv",
+    "residuals.png",
+    "camera_layout.png",
+    "calib_metrics.json",
+)
+
+
+def calibrate_session(session_dir: str | os.PathLike, params: Mapping[str, Any] | None = None
+                      ) -> tuple[SessionSpec, RigCalibration]:
+    """Detect the board in every ``calib/<cam>/<n>.png`` of a session and calibrate the rig.
+
+    params : ``config["params"]["calibrate"]`` (see :class:`CalibrationOptions`; plus ``subpix_window``).
+    Raises InputError (bad images, a board spec that matches no image) or QualityGateError (QA gates).
+    """
+    spec = read_session(session_dir)
+    params = dict(params or {})
+    images = session_images(spec)
+    t0 = time.perf_counter()
+    detections = detect_images(images, spec.board, (spec.width, spec.height), params.get("subpix_window"))
+    t_detect = time.perf_counter() - t0
+    if count_corners(detections) == 0:
+        n = sum(len(v) for v in images.values())
+        raise InputError(f"field 'board': no {spec.board.type} corners found in any of the {n} calibration "
+                         f"images (e.g. {next(iter(next(iter(images.values())).values()))})",
+                         path=spec.root / "session.yaml",
+                         fix="check board.type, squares_x/squares_y and dictionary against the printed board")
+    names = {c: {v: str(p.relative_to(spec.root)) for v, p in views.items()} for c, views in images.items()}
+    result = calibrate_rig(detections, spec.board, (spec.width, spec.height),
+                           CalibrationOptions.from_params(params), image_names=names)
+    result.seconds["detect"] = t_detect
+    result.seconds["total"] += t_detect
+    return spec, result
+
+
+def colmap_tracks(result: RigCalibration) -> dict[str, Any]:
+    """COLMAP model content: one image per used (camera, view), one 3-D point per observed (view, corner)."""
+    obs = result.obs
+    V = len(result.view_keys)
+    img_key = obs.cam * V + obs.view
+    uniq_img, obs_image = np.unique(img_key, return_inverse=True)
+    image_camera = uniq_img // V
+    image_names = [result.image_names[result.cameras[int(k // V)].id][result.view_keys[int(k % V)]]
+                   for k in uniq_img]
+    pt_key = obs.view.astype(np.int64) * (int(obs.corner.max()) + 1) + obs.corner
+    uniq_pt, obs_point = np.unique(pt_key, return_inverse=True)
+    n_corner = int(obs.corner.max()) + 1
+    pv, pc = uniq_pt // n_corner, uniq_pt % n_corner
+    return {"image_names": image_names, "image_camera": image_camera, "obs_image": obs_image,
+            "obs_point": obs_point, "view_of_point": pv, "corner_of_point": pc}
+
+
+def _csv_text(rows: list[dict]) -> str:
+    buf = io.StringIO()
+    if rows:
+        w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    return buf.getvalue()
+
+
+def plot_residuals(result: RigCalibration, path: str | os.PathLike) -> None:
+    """Residual scatter (dx, dy) coloured by camera and per-camera error distributions, PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    res = result.residuals
+    e = np.linalg.norm(res, axis=1)
+    fig, ax = plt.subplots(1, 2, figsize=(12, 5))
+    cmap = plt.get_cmap("tab20")
+    for i, cam in enumerate(result.cameras):
+        m = result.obs.cam == i
+        ax[0].scatter(res[m, 0], res[m, 1], s=2, color=cmap(i % 20), label=cam.id)
+    lim = max(float(np.percentile(np.abs(res), 99.9)) * 1.2, 1e-3)
+    ax[0].set(xlim=(-lim, lim), ylim=(-lim, lim), aspect="equal", xlabel="du (px)", ylabel="dv (px)",
+              title=f"reprojection residuals, RMS {result.rms_px:.3f} px")
+    if len(result.cameras) <= 20:
+        ax[0].legend(fontsize=6, markerscale=3, ncol=2)
+    ax[1].boxplot([e[result.obs.cam == i] for i in range(len(result.cameras))], showfliers=True)
+    ax[1].set_xticks(range(1, len(result.cameras) + 1), [c.id for c in result.cameras], rotation=90)
+    ax[1].set(ylabel="|error| (px)", title="per-camera reprojection error")
+    fig.tight_layout()
+    _save_fig(fig, path)
+
+
+def plot_camera_layout(result: RigCalibration, path: str | os.PathLike, frustum_mm: float | None = None) -> None:
+    """Camera frusta and board corner positions, top (x-z) and front (x-y) views of the world frame, PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    centres = np.stack([c.center for c in result.cameras])
+    corners = result.corner_world(result.obs.view, result.obs.corner)
+    span = max(float(np.ptp(np.vstack([centres, corners]), axis=0).max()), 1.0)
+    size = frustum_mm or 0.08 * span
+    fig, ax = plt.subplots(1, 2, figsize=(12, 6))
+    for a, (i, j, name) in zip(ax, [(0, 2, "top view (x, z)"), (0, 1, "front view (x, y)")]):
+        a.scatter(corners[:, i], corners[:, j], s=1, color="0.6", label="board corners")
+        for cam in result.cameras:
+            w, h = cam.width, cam.height
+            uv = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], float)
+            rays = cam.rays(uv)
+            tips = cam.center + rays * size
+            for tip in tips:
+                a.plot([cam.center[i], tip[i]], [cam.center[j], tip[j]], color="C0", lw=0.6)
+            loop = np.vstack([tips, tips[:1]])
+            a.plot(loop[:, i], loop[:, j], color="C0", lw=0.6)
+            a.annotate(cam.id, (cam.center[i], cam.center[j]), fontsize=7,
+                       color="C3" if cam.id == result.reference else "k")
+        a.set(aspect="equal", title=name, xlabel="xyz"[i] + " (mm)", ylabel="xyz"[j] + " (mm)")
+        if j == 1:
+            a.invert_yaxis()  # world = reference camera frame, y down
+    ax[0].legend(fontsize=7)
+    fig.suptitle(f"calibrated rig: world = camera {result.reference} frame (mm)")
+    fig.tight_layout()
+    _save_fig(fig, path)
+
+
+def _save_fig(fig, path) -> None:
+    import matplotlib.pyplot as plt
+
+    from rigbuild.io.atomic import atomic_path
+
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
+    """The ``calibration`` block of metrics.json from a result (no ground truth)."""
+    cam_rms = result.camera_rms()
+    return {
+        "rms_px": result.rms_px,
+        "max_camera_rms_px": max(cam_rms.values()),
+        "n_cameras": len(result.cameras),
+        "n_board_poses": len(result.view_keys),
+        "n_images_used": int(np.unique(result.obs.cam * len(result.view_keys) + result.obs.view).size),
+        "n_images_dropped": sum(len(v) for v in result.dropped.values()),
+        "n_corners": len(result.obs),
+        "reference_camera": result.reference,
+        "bundle_iterations_nfev": result.bundle.nfev,
+        "bundle_converged": result.bundle.status in (1, 2),
+        "seconds": result.seconds.get("total"),
+        "seconds_detect": result.seconds.get("detect"),
+        "seconds_bundle": result.seconds.get("bundle"),
+    }
+
+
+def write_outputs(result: RigCalibration, out_dir: str | os.PathLike, session: str,
+                  extra_metrics: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Write every calibration output into ``out_dir`` (staged, then moved; see module doc).
+
+    Returns the metrics dict written to ``calib_metrics.json``.
+    """
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.staging.", dir=out_dir.parent))
+    try:
+        metrics = calibration_metrics(result)
+        metrics.update(extra_metrics or {})
+        write_cameras(stage / "cameras.json", result.cameras, session=session,
+                      world_frame=f"camera {result.reference} (R = I, t = 0); metric scale from the board")
+        tr = colmap_tracks(result)
+        pts = result.corner_world(tr["view_of_point"], tr["corner_of_point"])
+        e = np.linalg.norm(result.residuals, axis=1)
+        perr = np.bincount(tr["obs_point"], weights=e) / np.maximum(np.bincount(tr["obs_point"]), 1)
+        write_colmap_text(stage / "colmap", result.cameras, tr["image_names"], tr["image_camera"], pts,
+                          tr["obs_image"], tr["obs_point"], result.obs.uv, perr)
+        write_text(stage / "reprojection_per_image.csv", _csv_text(result.per_image_rows()))
+        write_text(stage / "reprojection_per_camera.csv", _csv_text(result.per_camera_rows()))
+        plot_residuals(result, stage / "residuals.png")
+        plot_camera_layout(result, stage / "camera_layout.png")
+        write_json(stage / "calib_metrics.json", metrics)
+        for rel in OUTPUT_FILES:
+            dst = out_dir / rel
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(stage / rel, dst)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    return metrics
+
+
+
+def run_calibration(session_dir: str | os.PathLike, out_dir: str | os.PathLike, params: Mapping[str, Any] | None,
+                    metrics_path: str | os.PathLike | None = None) -> dict[str, Any]:
+    """Calibrate a session, write ``out_dir`` and merge ``calibration.*`` into ``metrics_path``.
+
+    If the session has ``ground_truth/cameras.json`` (synthetic sessions), the errors against it
+    (:func:`rigbuild.eval.calibration.compare_cameras`) are added to the metrics - reporting only; the
+    calibration itself never reads ground truth. Returns the metrics.
+    """
+    from rigbuild.io.metrics import merge_metrics
+
+    spec, result = calibrate_session(session_dir, params)
+    extra: dict[str, Any] = {}
+    gt_path = spec.ground_truth_dir / "cameras.json"
+    if gt_path.exists():
+        from rigbuild.eval.calibration import compare_cameras
+        from rigbuild.io.cameras import read_cameras
+
+        extra = compare_cameras(result.cameras, read_cameras(gt_path))
+    metrics = write_outputs(result, out_dir, spec.name, extra)
+    if metrics_path is not None:
+        merge_metrics(metrics_path, "calibration", metrics)
+    return metrics

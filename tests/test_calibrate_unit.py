@@ -1,0 +1,256 @@
+"""Unit tests of rigbuild.calibrate (rotations, pose graph, bundle adjustment, QA gates, detection I/O),
+rigbuild.io.colmap and rigbuild.eval.calibration on small analytic cases with exact answers."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from rigbuild.calibrate import qa
+from rigbuild.calibrate.bundle import Observations, bundle_adjust, project, robust_weights
+from rigbuild.calibrate.detect import Detection, detect_board, is_usable, read_gray
+from rigbuild.calibrate.posegraph import build_pose_graph, compose, invert
+from rigbuild.calibrate.rig import CalibrationOptions, calibrate_rig
+from rigbuild.calibrate.rotations import chordal_mean, rodrigues, rotation_to_rvec
+from rigbuild.calibrate.simulate import arc_rig, random_board_poses, simulate_detections
+from rigbuild.camera import Camera
+from rigbuild.errors import InputError, QualityGateError
+from rigbuild.eval.calibration import compare_cameras
+from rigbuild.geometry.rigid import rotation_angle_deg
+from rigbuild.io.colmap import rotation_to_quaternion, write_colmap_text
+from rigbuild.session import BoardSpec
+
+BOARD = BoardSpec("charuco", 7, 5, 24.0, 18.0, "DICT_5X5_100")
+
+
+def test_rodrigues_matches_opencv_and_inverts():
+    rng = np.random.default_rng(0)
+    r = rng.normal(size=(40, 3))
+    r[0] = 0.0
+    r[1] = [1e-14, 0, 0]
+    r[2] = [np.pi, 0, 0]
+    R = rodrigues(r)
+    ref = np.stack([cv2.Rodrigues(v)[0] for v in r])
+    assert np.abs(R - ref).max() < 1e-12
+    assert np.abs(rodrigues(rotation_to_rvec(R)) - R).max() < 1e-12
+    M = rodrigues(np.array([[0, 0, 0.1], [0, 0, -0.1]]))
+    assert np.allclose(chordal_mean(M), np.eye(3), atol=1e-12)
+
+
+def _random_pose(rng):
+    return rodrigues(rng.normal(0, 0.5, 3)), rng.normal(0, 100, 3)
+
+
+def test_pose_graph_chains_exact_poses_and_reports_unreachable():
+    rng = np.random.default_rng(1)
+    cams = {c: _random_pose(rng) for c in "abcd"}  # world-to-camera
+    boards = {str(v): _random_pose(rng) for v in range(5)}  # board-to-world
+    seen = {"a": ["0", "1"], "b": ["1", "2"], "c": ["2", "3"], "d": ["4"]}  # a-b-c chain; d alone
+    view_poses = {c: {v: compose(cams[c], boards[v]) for v in seen[c]} for c in cams}
+    g = build_pose_graph(view_poses, "a")
+    assert g.unreachable == ["d"]
+    assert [e[:2] for e in g.edges] == [("a", "b"), ("b", "c")]
+    ref = cams["a"]
+    for c in "abc":  # world = camera a frame: expected pose of c is T_c T_a^-1
+        R_exp, t_exp = compose(cams[c], invert(*ref))
+        assert np.abs(g.cameras[c][0] - R_exp).max() < 1e-12 and np.abs(g.cameras[c][1] - t_exp).max() < 1e-9
+    R_b, t_b = compose(ref, boards["3"])
+    assert np.abs(g.boards["3"][0] - R_b).max() < 1e-12 and np.abs(g.boards["3"][1] - t_b).max() < 1e-9
+    assert "4" not in g.boards
+
+
+def test_robust_weights():
+    e2 = np.array([0.0, 1.0, 4.0])
+    c, w = robust_weights(e2, "linear", 1.0)
+    assert np.allclose(c, e2) and np.allclose(w, 1)
+    c, w = robust_weights(e2, "soft_l1", 1.0)
+    assert np.allclose(c, 2 * (np.sqrt(1 + e2) - 1)) and np.allclose(w, 1 / np.sqrt(1 + e2))
+    c, w = robust_weights(e2, "huber", 1.0)
+    assert np.allclose(c, [0, 1, 3]) and np.allclose(w, [1, 1, 0.5])
+    with pytest.raises(ValueError, match="unknown robust loss"):
+        robust_weights(e2, "l3", 1.0)
+
+
+def _sim(n_cams=4, n_poses=10, noise=0.0, seed=0, size=(640, 480), focal=800.0):
+    cams = arc_rig(n_cams, size[0], size[1], focal_px=focal, distance_mm=450, azimuth_deg=90, seed=seed)
+    poses = random_board_poses(n_poses, BOARD, seed=seed + 1, max_tilt_deg=35, spread_mm=40)
+    return cams, poses, simulate_detections(cams, BOARD, poses, noise_px=noise, seed=seed + 2)
+
+
+def test_calibrate_rig_noise_free_is_exact():
+    cams, _, det = _sim(noise=0.0)
+    res = calibrate_rig(det, BOARD, (640, 480), CalibrationOptions(min_images=4))
+    assert res.rms_px < 1e-6
+    err = compare_cameras(res.cameras, cams)
+    assert err["focal_error_pct"] < 1e-6 and err["principal_point_error_px"] < 1e-4
+    assert err["center_error_mm"] < 1e-5 and err["rotation_error_deg"] < 1e-6
+    assert abs(err["scale_error_pct"]) < 1e-6  # metric scale from the board
+    assert res.bundle.status in (1, 2)
+    # world frame = reference camera frame
+    assert np.allclose(res.cameras[0].R, np.eye(3)) and np.allclose(res.cameras[0].t, 0)
+
+
+def test_bundle_robust_loss_rejects_outliers():
+    cams, poses, det = _sim(noise=0.05, seed=3)
+    rng = np.random.default_rng(9)
+    for cam in list(det)[:2]:  # corrupt a few corners by 15-25 px
+        for v, d in list(det[cam].items())[:3]:
+            if len(d) > 4:
+                d.corners[:2] += rng.uniform(15, 25, (2, 2))
+    robust = calibrate_rig(det, BOARD, (640, 480), CalibrationOptions(max_rms_px=10, robust_loss="soft_l1",
+                                                                     robust_scale_px=0.5))
+    plain = calibrate_rig(det, BOARD, (640, 480), CalibrationOptions(max_rms_px=10, robust_loss="linear",
+                                                                    max_iterations=15))
+    e_r = compare_cameras(robust.cameras, cams)
+    e_p = compare_cameras(plain.cameras, cams)
+    assert e_r["center_error_mm"] < 0.5 * e_p["center_error_mm"]
+    assert e_r["focal_error_pct"] < 0.5 * e_p["focal_error_pct"]
+    # inliers fit at the noise level under the robust loss: median error ~ 0.05 * 1.18
+    assert np.median(np.linalg.norm(robust.residuals, axis=1)) < 0.1
+
+
+def test_project_matches_camera_project():
+    cams, poses, det = _sim(n_cams=2, n_poses=3, noise=0.0)
+    pts, _ = BOARD.corner_points()
+    cam_params = np.stack([np.concatenate([c.rvec, c.t, [c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]], c.dist])
+                           for c in cams])
+    board_params = np.stack([np.concatenate([rotation_to_rvec(R), t]) for R, t in poses])
+    obs = Observations(np.array([0, 1, 1]), np.array([0, 2, 1]), np.array([0, 5, 23]), np.zeros((3, 2)))
+    uv = project(cam_params, board_params, obs, pts)
+    for k in range(3):
+        R, t = poses[obs.view[k]]
+        exp = cams[obs.cam[k]].project(R @ pts[obs.corner[k]] + t)
+        assert np.abs(uv[k] - exp).max() < 1e-9
+
+
+def test_qa_gates_name_cameras_and_images():
+    with pytest.raises(QualityGateError, match=r"cam02: 1 usable; too few corners in calib/cam02/3.png"):
+        qa.check_image_counts({"cam01": ["a", "b"], "cam02": ["x"]}, {"cam02": ["calib/cam02/3.png"]}, 2)
+    qa.check_image_counts({"cam01": ["a", "b"]}, {}, 2)
+    with pytest.raises(QualityGateError, match=r"cam05.*share no board view.*cam00"):
+        qa.check_connected(["cam05"], "cam00", {"cam05": ["calib/cam05/0.png"]})
+    qa.check_connected([], "cam00", {})
+    with pytest.raises(QualityGateError, match=r"cam01: RMS 0.900 px; worst images calib/cam01/7.png \(2.00 px\)"):
+        qa.check_rms({"cam00": 0.1, "cam01": 0.9}, {"cam01": {"calib/cam01/7.png": 2.0, "calib/cam01/1.png": 0.2}},
+                     0.5)
+    qa.check_rms({"cam00": 0.1}, {}, 0.5)
+
+
+def test_calibrate_rig_gates():
+    cams, _, det = _sim(n_cams=3, n_poses=8, noise=0.05)
+    # camera 2 sees only board poses no other camera saw -> unreachable
+    det2 = {c: dict(v) for c, v in det.items()}
+    det2["cam02"] = {f"x{k}": d for k, d in det["cam02"].items()}
+    with pytest.raises(QualityGateError, match="cam02 share no board view"):
+        calibrate_rig(det2, BOARD, (640, 480))
+    with pytest.raises(QualityGateError, match="fewer than 50 usable"):
+        calibrate_rig(det, BOARD, (640, 480), CalibrationOptions(min_images=50))
+    with pytest.raises(QualityGateError, match="RMS above"):
+        calibrate_rig(det, BOARD, (640, 480), CalibrationOptions(max_rms_px=0.01))
+
+
+def test_is_usable_rejects_collinear_and_sparse():
+    pts, ids = BOARD.corner_points()
+    row = ids[:6]  # first row of inner corners: collinear
+    assert not is_usable(Detection(row, np.zeros((6, 2))), BOARD, 4)
+    assert not is_usable(Detection(ids[:3], np.zeros((3, 2))), BOARD, 3)
+    assert is_usable(Detection(ids, np.zeros((len(ids), 2))), BOARD, 8)
+
+
+def test_read_gray_errors_name_the_file(tmp_path):
+    img = np.full((48, 64), 200, np.uint8)
+    good = tmp_path / "0.png"
+    cv2.imwrite(str(good), img)
+    assert read_gray(good, (64, 48)).shape == (48, 64)
+    trunc = tmp_path / "1.png"
+    trunc.write_bytes(good.read_bytes()[:-30])
+    with pytest.raises(InputError, match=r"1.png: truncated PNG"):
+        read_gray(trunc)
+    junk = tmp_path / "2.png"
+    junk.write_bytes(b"not an image at all" + b"IEND\xaeB`\x82")
+    with pytest.raises(InputError, match=r"2.png: unreadable image"):
+        read_gray(junk)
+    with pytest.raises(InputError, match=r"0.png: image is 64x48 but session.yaml image_size is 640x480"):
+        read_gray(good, (640, 480))
+    with pytest.raises(InputError, match="image not found"):
+        read_gray(tmp_path / "9.png")
+    assert len(detect_board(img, BOARD)) == 0  # blank image: no corners, no error
+
+
+def test_quaternion_roundtrip():
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        R = rodrigues(rng.normal(size=3))
+        w, x, y, z = rotation_to_quaternion(R)
+        Rq = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                       [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                       [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        assert np.abs(Rq - R).max() < 1e-12 and w >= 0
+
+
+def test_colmap_model_loads_in_pycolmap_with_same_errors(tmp_path):
+    pycolmap = pytest.importorskip("pycolmap")
+    rng = np.random.default_rng(5)
+    cams = arc_rig(2, 640, 480, focal_px=800, distance_mm=450, azimuth_deg=60, seed=2)
+    cams[1].dist[4] = 0.05  # one FULL_OPENCV camera, one OPENCV camera
+    cams[0].dist[4] = 0.0
+    X = rng.uniform(-50, 50, (10, 3))
+    obs_image, obs_point, uv = [], [], []
+    for i, cam in enumerate(cams):
+        p = cam.project(X)
+        obs_image += [i] * len(X)
+        obs_point += list(range(len(X)))
+        uv.append(p + rng.normal(0, 0.5, p.shape))
+    uv = np.vstack(uv)
+    write_colmap_text(tmp_path, cams, ["a.png", "b.png"], np.array([0, 1]), X, np.array(obs_image),
+                      np.array(obs_point), uv)
+    rec = pycolmap.Reconstruction(str(tmp_path))
+    assert rec.num_cameras() == 2 and rec.num_images() == 2 and rec.num_points3D() == 10
+    assert rec.cameras[1].model.name == "OPENCV" and rec.cameras[2].model.name == "FULL_OPENCV"
+    ours = np.linalg.norm(uv - np.vstack([c.project(X) for c in cams]), axis=1)
+    theirs = []
+    for image_id in (1, 2):
+        im = rec.images[image_id]
+        cam = rec.cameras[im.camera_id]
+        for p2 in im.points2D:
+            xyz = rec.points3D[p2.point3D_id].xyz
+            proj = cam.img_from_cam(im.cam_from_world() * xyz)
+            theirs.append(np.linalg.norm(proj - p2.xy))
+    assert np.abs(np.array(theirs) - ours).max() < 1e-6
+
+
+def test_compare_cameras_is_similarity_invariant():
+    cams = arc_rig(5, seed=7)
+    s, R = 1.0, rodrigues(np.array([0.3, -0.2, 0.5]))
+    t = np.array([100.0, -20.0, 5.0])
+    moved = []  # the same rig in another world frame: X' = R X + t  ->  R_c' = R_c R^T
+    for c in cams:
+        moved.append(Camera(c.id, c.width, c.height, c.K.copy(), c.dist.copy(), c.R @ R.T, c.t - c.R @ R.T @ t))
+    e = compare_cameras(moved, cams)
+    assert e["center_error_mm"] < 1e-9 and e["rotation_error_deg"] < 1e-9 and abs(e["scale_error_pct"]) < 1e-9
+    moved[2].K[0, 0] *= 1.002
+    moved[3].K[1, 2] += 3.0
+    centre = moved[4].center  # turn camera 4 by 0.05 degrees about its own centre
+    moved[4].R = rodrigues(np.array([0, 0, np.radians(0.05)])) @ moved[4].R
+    moved[4].t = -moved[4].R @ centre
+    e = compare_cameras(moved, cams)
+    assert abs(e["focal_error_pct"] - 0.2) < 1e-9
+    assert abs(e["principal_point_error_px"] - 3.0) < 1e-9
+    assert abs(e["rotation_error_deg"] - 0.05) < 1e-9 and e["center_error_mm"] < 1e-9
+    assert rotation_angle_deg(np.eye(3)) == 0.0
+
+
+def test_chessboard_labelled_in_opposite_orders_is_resolved():
+    chess = BoardSpec("chessboard", 8, 6, 20.0)
+    cams = arc_rig(3, 640, 480, focal_px=800, distance_mm=450, azimuth_deg=60, seed=11)
+    poses = random_board_poses(8, chess, seed=12, max_tilt_deg=30, spread_mm=30)
+    det = simulate_detections(cams, chess, poses, noise_px=0.0, margin_px=-1e9)  # whole board every time
+    n = len(chess.corner_points()[0])
+    for v in ("1", "4", "6"):  # camera 1 numbers these views from the other end
+        d = det["cam01"][v]
+        det["cam01"][v] = Detection(n - 1 - d.ids[::-1], d.corners[::-1])
+    res = calibrate_rig(det, chess, (640, 480), CalibrationOptions(min_images=4))
+    assert sorted(res.graph.flipped.get("cam01", [])) == ["1", "4", "6"]
+    assert res.rms_px < 1e-6
+    assert compare_cameras(res.cameras, cams)["center_error_mm"] < 1e-5
