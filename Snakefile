@@ -16,15 +16,6 @@ include: "rules/retarget_seol.smk"
 include: "rules/report.smk"
 
 
-def stage_targets(session):
-    """Every stage output of a session (the report depends on them all)."""
-    targets = [results(session, "calib", "cameras.json")]
-    for perf in performances(session):
-        for character in CHARACTERS:
-            targets.append(results(session, "retarget", "seol", perf, character, "weights.csv"))
-    return targets
-
-
 rule all:
     input:
         [results(s, "report.html") for s in SESSIONS],

@@ -27,5 +27,7 @@ rule calibrate:
     threads: 1
     resources:
         mem_mb=2000,
+    conda:
+        "../environment.yml"
     script:
         "../scripts/calibrate.py"

@@ -17,5 +17,7 @@ rule character_rig:
         mem_mb=3000,
     wildcard_constraints:
         character="|".join(CHARACTERS) or "(?!)",
+    conda:
+        "../environment.yml"
     script:
         "../scripts/make_character.py"

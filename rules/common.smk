@@ -1,4 +1,4 @@
-# Helpers shared by the rule modules: config validation, session lookup, target lists.
+# Helpers shared by the stage modules (config validation, session lookup, target lists).
 import os
 from pathlib import Path
 
@@ -122,3 +122,12 @@ def sequences(session):
 
 def performances(session):
     return [p.name for p in session_spec(session).performances]
+
+
+def stage_targets(session):
+    """Every stage output of a session (the report depends on them all)."""
+    targets = [results(session, "calib", "cameras.json")]
+    for perf in performances(session):
+        for character in CHARACTERS:
+            targets.append(results(session, "retarget", "seol", perf, character, "weights.csv"))
+    return targets

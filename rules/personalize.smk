@@ -39,5 +39,7 @@ rule personalize:
     threads: 1
     resources:
         mem_mb=6000,
+    conda:
+        "../environment.yml"
     script:
         "../scripts/personalize.py"

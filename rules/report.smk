@@ -16,5 +16,7 @@ rule report:
     threads: 1
     resources:
         mem_mb=1000,
+    conda:
+        "../environment.yml"
     script:
         "../scripts/report.py"

@@ -53,6 +53,8 @@ rule retarget_ribera:
     wildcard_constraints:
         method="|".join(RIBERA_METHODS),
         character="|".join(CHARACTERS) or "(?!)",
+    conda:
+        "../environment.yml"
     script:
         "../scripts/retarget.py"
 
@@ -77,5 +79,7 @@ rule retarget_ribera_eval:
     wildcard_constraints:
         method="|".join(RIBERA_METHODS),
         character="|".join(CHARACTERS) or "(?!)",
+    conda:
+        "../environment.yml"
     script:
         "../scripts/retarget_eval.py"

@@ -31,5 +31,7 @@ rule retarget_seol:
         mem_mb=2000,
     wildcard_constraints:
         character="|".join(CHARACTERS) or "(?!)",
+    conda:
+        "../environment.yml"
     script:
         "../scripts/retarget_seol.py"

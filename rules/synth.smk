@@ -14,7 +14,7 @@ for _s in SESSIONS:
         params:
             session=_s,
             synthetic=config["sessions"][_s]["synthetic"],
-            folder=str(session_dir(_s)),
+            folder=lambda wc, output: os.path.dirname(output[0]),
         log:
             f"logs/{_s}/synth/synth_session.log",
         benchmark:
@@ -22,5 +22,7 @@ for _s in SESSIONS:
         threads: 1
         resources:
             mem_mb=4000,
+        conda:
+            "../environment.yml"
         script:
             "../scripts/synth_session.py"

@@ -51,6 +51,8 @@ rule track_neutral:
     threads: 1
     resources:
         mem_mb=3000,
+    conda:
+        "../environment.yml"
     script:
         "../scripts/track.py"
 
@@ -79,6 +81,8 @@ rule track_sequence:
     threads: 1
     resources:
         mem_mb=4000,
+    conda:
+        "../environment.yml"
     script:
         "../scripts/track.py"
 
@@ -96,5 +100,7 @@ rule track_metrics:
     threads: 1
     resources:
         mem_mb=500,
+    conda:
+        "../environment.yml"
     script:
         "../scripts/track.py"
