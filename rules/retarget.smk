@@ -4,7 +4,7 @@
 # RBF-transfer baseline). Needs from common.smk: session_spec, session_dir, CHARACTERS, results(), is_synthetic;
 # characters.smk builds results/{session}/characters/{character}.npz; tracking writes
 # results/{session}/track/{sequence}/markers.npz. Params: config["params"]["retarget"]["ribera"]
-# (keys: scripts/retarget.py PARAMS); config["params"]["retarget"]["ribera_methods"] (list).
+# (keys: scripts/retarget.py PARAMS).
 
 RIBERA_METHODS = ["ribera", "ribera_activation", "rbf"]
 

@@ -7,7 +7,6 @@ output: weights (.csv), weights_json, gltf, plot (.png), metrics (.json), system
 params: seol (dict, see PARAMS below), character, performance, metrics_path, neutral_frame.
 """
 
-from __future__ import annotations
 
 import logging
 import time

@@ -1,0 +1,531 @@
+"""CPU rasterizer: moderngl on a standalone EGL context (Mesa llvmpipe), OpenCV camera conventions.
+
+Per image:
+
+1. The distorted camera's pixel centres are undistorted once per camera (cached) and a pinhole camera
+   with the same focal lengths and a shifted principal point is chosen that covers all of them
+   (plus a 2-pixel margin).
+2. Id pass (no multisampling): triangle id + 1 into an R32I buffer of the pinhole image.
+3. Colour pass (4x MSAA unless ``msaa=False``): Lambert-shaded albedo texture (mipmapped, anisotropic)
+   with painted dots, into a float buffer of the pinhole image.
+4. Colour is resampled to the distorted image with ``cv2.remap`` (bilinear). Depth, triangle id and
+   barycentrics at the distorted pixel centres are never interpolated: a full-screen GLSL pass intersects
+   each pixel's exact ray (double precision) with the triangles found at the 2x2 pinhole pixel centres
+   around it (a projected triangle is convex, so four equal ids settle it); the few pixels whose
+   candidates all miss (sub-pixel slivers at silhouettes) get a numpy search of the neighbouring
+   triangles (:func:`rigbuild.render.common.ring_search`). Then Gaussian sensor noise and 8-bit rounding.
+   (:func:`rigbuild.render.common.resolve_from_id_buffer` is the same algorithm in numpy.)
+
+The GL projection maps OpenCV pixel centre ``(u, v)`` (integers) to GL window coordinates
+``(u + 0.5, v + 0.5)``, and rows are read back bottom-up, so buffer row ``v`` is image row ``v``.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+
+from rigbuild.camera import Camera
+from rigbuild.render.common import (
+    RenderResult,
+    background_rgb,
+    finish_color,
+    light_in_camera,
+    pixel_rays,
+    ring_search,
+)
+from rigbuild.render.mesh import TexturedMesh
+
+PINHOLE_MARGIN_PX = 2
+MSAA_SAMPLES = 4
+ANISOTROPY = 8.0
+
+_ID_VS = """
+#version 330
+uniform mat4 proj;
+in vec3 in_pos;
+void main() { gl_Position = proj * vec4(in_pos, 1.0); }
+"""
+_ID_FS = """
+#version 330
+out int out_id;
+void main() { out_id = gl_PrimitiveID + 1; }
+"""
+_COLOR_VS = """
+#version 330
+uniform mat4 proj;
+in vec3 in_pos;
+in vec3 in_normal;
+in vec2 in_uv;
+out vec3 v_pos;
+out vec3 v_normal;
+out vec2 v_uv;
+void main() {
+    v_pos = in_pos; v_normal = in_normal; v_uv = in_uv;
+    gl_Position = proj * vec4(in_pos, 1.0);
+}
+"""
+_COLOR_FS = """
+#version 330
+uniform sampler2D albedo;
+uniform sampler2D dots;      // RGBA32F, one texel per dot: camera-frame centre (mm), radius (mm)
+uniform int n_dots;
+uniform vec3 dot_albedo;     // 0..1
+uniform vec3 light_dir;      // camera frame, unit, towards the light
+uniform float ambient;
+in vec3 v_pos;
+in vec3 v_normal;
+in vec2 v_uv;
+out vec4 out_color;
+void main() {
+    vec3 n = normalize(v_normal);
+    if (dot(n, v_pos) > 0.0) n = -n;            // two-sided: face the camera at the origin
+    vec3 a = texture(albedo, v_uv).rgb;
+    if (n_dots > 0) {
+        float fw = max(length(fwidth(v_pos)), 1e-6);   // pixel footprint on the surface, mm
+        float cover = 0.0;
+        for (int i = 0; i < n_dots; i++) {
+            vec4 d = texelFetch(dots, ivec2(i, 0), 0);
+            cover = max(cover, clamp((d.w - length(v_pos - d.xyz)) / fw + 0.5, 0.0, 1.0));
+        }
+        a = mix(a, dot_albedo, cover);
+    }
+    float shade = ambient + (1.0 - ambient) * max(dot(n, light_dir), 0.0);
+    out_color = vec4(a * shade * 255.0, 1.0);  // float buffer, 8-bit levels: rounded once, at the end
+}
+"""
+_RESOLVE_VS = """
+#version 400
+in vec2 in_xy;
+void main() { gl_Position = vec4(in_xy, 0.0, 1.0); }
+"""
+# Exact visibility at distorted pixel centres: the pixel's ray (x, y, 1) is intersected (in double
+# precision) with the triangles found at the 2x2 pinhole pixel centres around its pinhole position.
+_RESOLVE_FS = """
+#version 400
+uniform isampler2D pin_ids;   // pinhole triangle id + 1, 0 = background
+uniform sampler2D rays;       // RG32F per distorted pixel: normalized (x, y)
+uniform sampler2D tris;       // RGB32F: corner k of triangle f at texel 3 f + k (row-major, width tw)
+uniform int tw_mask;          // texture width - 1 (width is a power of two)
+uniform int tw_shift;         // log2(texture width)
+uniform dvec3 kp_row0;        // pinhole fx, skew, cx
+uniform dvec2 kp_row1;        // pinhole fy, cy
+uniform ivec2 pin_size;
+uniform double tol;
+uniform double disc_mm;       // candidate plane depths further apart than this mark an occlusion boundary
+layout(location = 0) out float o_depth;
+layout(location = 1) out int o_id;      // triangle id, -1 background, -2 needs a neighbourhood search
+layout(location = 2) out vec4 o_bary;
+
+dvec3 corner(int i) { return dvec3(texelFetch(tris, ivec2(i & tw_mask, i >> tw_shift), 0).xyz); }
+
+// Intersect the ray (x, y, 1) with triangle f; returns (z, b1, b2) with b0 = 1 - b1 - b2.
+dvec3 intersect(int f, dvec3 d) {
+    dvec3 A = corner(3 * f), e1 = corner(3 * f + 1) - A, e2 = corner(3 * f + 2) - A;
+    dvec3 p = cross(d, e2);
+    double det = dot(e1, p);
+    if (det == 0.0) return dvec3(-1.0, -1.0, -1.0);
+    dvec3 q = cross(-A, e1);
+    return dvec3(dot(e2, q), -dot(A, p), dot(d, q)) / det;
+}
+
+void main() {
+    ivec2 px = ivec2(gl_FragCoord.xy);
+    dvec2 xy = dvec2(texelFetch(rays, px, 0).xy);
+    double mx = kp_row0.x * xy.x + kp_row0.y * xy.y + kp_row0.z;
+    double my = kp_row1.x * xy.y + kp_row1.y;
+    ivec2 p0 = clamp(ivec2(floor(vec2(mx, my))), ivec2(0), pin_size - 2);
+    ivec4 c = ivec4(texelFetch(pin_ids, p0, 0).x, texelFetch(pin_ids, p0 + ivec2(1, 0), 0).x,
+                    texelFetch(pin_ids, p0 + ivec2(0, 1), 0).x, texelFetch(pin_ids, p0 + ivec2(1, 1), 0).x) - 1;
+    dvec3 d = dvec3(xy, 1.0);
+    if (all(equal(c, ivec4(-1)))) {
+        o_id = -1; o_depth = 0.0; o_bary = vec4(0.0);
+        return;
+    }
+    if (all(equal(c, c.xxxx))) {            // a projected triangle is convex: it is the one
+        dvec3 h = intersect(c.x, d);
+        o_id = c.x; o_depth = float(h.x); o_bary = vec4(float(1.0 - h.y - h.z), float(h.y), float(h.z), 0.0);
+        return;
+    }
+    double best_z = 1e300, plane_min = 1e300, plane_max = -1e300;
+    int best = -1;
+    dvec3 best_b = dvec3(0.0);
+    for (int k = 0; k < 4; k++) {
+        int f = c[k];
+        if (f < 0) continue;
+        dvec3 h = intersect(f, d);
+        plane_min = min(plane_min, h.x);
+        plane_max = max(plane_max, h.x);
+        dvec3 b = dvec3(1.0 - h.y - h.z, h.y, h.z);
+        if (min(b.x, min(b.y, b.z)) >= -tol && h.x > 0.0 && h.x < best_z) { best_z = h.x; best = f; best_b = b; }
+    }
+    o_id = best >= 0 ? best : -2;
+    o_depth = best >= 0 ? float(best_z) : 0.0;
+    // w = 1: an occlusion boundary (candidate planes far apart along the ray): a nearer sliver may hide
+    // between the pinhole pixel centres, so the candidates' neighbours get searched too
+    bool boundary = plane_max - plane_min > disc_mm;
+    o_bary = vec4(vec3(best_b), (best >= 0 && boundary) ? 1.0 : 0.0);
+}
+"""
+
+
+class _GL:
+    """The process-wide EGL context with compiled programs and caches (created lazily)."""
+
+    def __init__(self) -> None:
+        import moderngl
+
+        self.moderngl = moderngl
+        self.ctx = moderngl.create_standalone_context(backend="egl")
+        self.id_prog = self.ctx.program(vertex_shader=_ID_VS, fragment_shader=_ID_FS)
+        self.color_prog = self.ctx.program(vertex_shader=_COLOR_VS, fragment_shader=_COLOR_FS)
+        self.resolve_prog = self.ctx.program(vertex_shader=_RESOLVE_VS, fragment_shader=_RESOLVE_FS)
+        tri = np.array([-1.0, -1.0, 3.0, -1.0, -1.0, 3.0], dtype="f4")
+        self.fullscreen_vbo = self.ctx.buffer(tri.tobytes())
+        self.fullscreen_vao = self.ctx.vertex_array(self.resolve_prog, [(self.fullscreen_vbo, "2f", "in_xy")])
+        self._fbos: dict[tuple, tuple] = {}
+        self._resolve_fbos: dict[tuple, object] = {}
+        self._rays: dict[tuple, object] = {}
+        self._textures: dict[int, tuple] = {}
+
+    # ------------------------------------------------------------------ caches
+    def texture(self, image: np.ndarray):
+        """GL texture (mipmapped, anisotropic, repeat) of an (H, W, 3) uint8 image, cached per array."""
+        dead = [k for k, (ref, _) in self._textures.items() if ref() is None]
+        for k in dead:
+            self._textures.pop(k)[1].release()
+        hit = self._textures.get(id(image))
+        if hit is not None and hit[0]() is image:
+            return hit[1]
+        data = np.ascontiguousarray(image[::-1])  # GL row 0 = texture v = 0 = bottom image row (OBJ)
+        tex = self.ctx.texture((image.shape[1], image.shape[0]), 3, data.tobytes(), alignment=1)
+        tex.build_mipmaps()
+        tex.filter = (self.moderngl.LINEAR_MIPMAP_LINEAR, self.moderngl.LINEAR)
+        tex.anisotropy = min(ANISOTROPY, self.ctx.max_anisotropy)
+        tex.repeat_x = tex.repeat_y = True
+        self._textures[id(image)] = (weakref.ref(image), tex)
+        return tex
+
+    def rays_texture(self, camera: Camera):
+        """RG32F texture of the normalized ray coordinates of every distorted pixel; cached per camera."""
+        key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
+        tex = self._rays.get(key)
+        if tex is None:
+            xy = np.ascontiguousarray(pixel_rays(camera), dtype="f4")
+            tex = self.ctx.texture((camera.width, camera.height), 2, xy.tobytes(), dtype="f4")
+            tex.filter = (self.moderngl.NEAREST, self.moderngl.NEAREST)
+            if len(self._rays) >= 16:
+                self._rays.pop(next(iter(self._rays))).release()
+            self._rays[key] = tex
+        return tex
+
+    def resolve_framebuffer(self, width: int, height: int):
+        """Framebuffer with depth (R32F), id (R32I) and barycentric (RGBA32F) targets; cached per size."""
+        key = (width, height)
+        fbo = self._resolve_fbos.get(key)
+        if fbo is None:
+            ctx = self.ctx
+            size = (width, height)
+            fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer(size, 1, dtype="f4"),
+                                                     ctx.renderbuffer(size, 1, dtype="i4"),
+                                                     ctx.renderbuffer(size, 4, dtype="f4")])
+            if len(self._resolve_fbos) >= 8:
+                self._resolve_fbos.pop(next(iter(self._resolve_fbos))).release()
+            self._resolve_fbos[key] = fbo
+        return fbo
+
+    def framebuffers(self, width: int, height: int, msaa: bool):
+        """(id_fbo, color_fbo, resolve_fbo or None) for a pinhole image size; cached."""
+        key = (width, height, msaa)
+        if key not in self._fbos:
+            ctx = self.ctx
+            size = (width, height)
+            id_fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer(size, 1, dtype="i4")],
+                                     depth_attachment=ctx.depth_renderbuffer(size))
+            if msaa:
+                color = ctx.framebuffer(color_attachments=[ctx.renderbuffer(size, 4, samples=MSAA_SAMPLES, dtype="f4")],
+                                        depth_attachment=ctx.depth_renderbuffer(size, samples=MSAA_SAMPLES))
+                resolve = ctx.framebuffer(color_attachments=[ctx.renderbuffer(size, 4, dtype="f4")])
+            else:
+                color = ctx.framebuffer(color_attachments=[ctx.renderbuffer(size, 4, dtype="f4")],
+                                        depth_attachment=ctx.depth_renderbuffer(size))
+                resolve = None
+            if len(self._fbos) >= 8:
+                for obj in self._fbos.pop(next(iter(self._fbos))):
+                    if obj is not None:
+                        obj.release()
+            self._fbos[key] = (id_fbo, color, resolve)
+        return self._fbos[key]
+
+
+_STATE: dict[str, object] = {}
+
+
+def gl_context() -> _GL:
+    """The cached EGL renderer state of this process (created on first use; raises if EGL is absent)."""
+    st = _STATE.get("gl")
+    if st is None:
+        err = _STATE.get("error")
+        if err is not None:
+            raise RuntimeError(f"EGL context unavailable: {err}")
+        try:
+            st = _GL()
+        except Exception as exc:  # noqa: BLE001 - any failure means "no EGL here"
+            _STATE["error"] = repr(exc)
+            raise RuntimeError(f"EGL context unavailable: {exc!r}") from exc
+        _STATE["gl"] = st
+    return st  # type: ignore[return-value]
+
+
+def egl_available() -> bool:
+    """True if a standalone EGL context can be created in this process."""
+    try:
+        gl_context()
+        return True
+    except RuntimeError:
+        return False
+
+
+# ------------------------------------------------------------------ geometry helpers
+def pinhole_cover(camera: Camera, margin: int = PINHOLE_MARGIN_PX):
+    """Pinhole image covering the distorted image.
+
+    Returns
+    -------
+    Kp : (3, 3) pinhole intrinsics (same focal lengths/skew, shifted principal point).
+    size : (Wp, Hp) pinhole image size.
+    map_x, map_y : (H, W) float32 pinhole pixel coordinates of each distorted pixel centre.
+    xy : (H, W, 2) float64 normalized ray coordinates of each distorted pixel centre.
+    """
+    xy = pixel_rays(camera)
+    K = camera.K
+    u = K[0, 0] * xy[..., 0] + K[0, 1] * xy[..., 1] + K[0, 2]
+    v = K[1, 1] * xy[..., 1] + K[1, 2]
+    ox = margin - np.floor(u.min())
+    oy = margin - np.floor(v.min())
+    Wp = int(np.ceil(u.max() + ox)) + margin + 1
+    Hp = int(np.ceil(v.max() + oy)) + margin + 1
+    if Wp > 3 * camera.width or Hp > 3 * camera.height:
+        raise ValueError(f"camera {camera.id}: distortion too strong to render (pinhole cover {Wp}x{Hp})")
+    Kp = K.copy()
+    Kp[0, 2] += ox
+    Kp[1, 2] += oy
+    return Kp, (Wp, Hp), (u + ox).astype(np.float32), (v + oy).astype(np.float32), xy
+
+
+def gl_projection(Kp: np.ndarray, width: int, height: int, near: float, far: float) -> np.ndarray:
+    """(4, 4) GL clip matrix for camera-frame points (OpenCV axes) and pinhole intrinsics ``Kp``.
+
+    Pixel centre ``(u, v)`` maps to window coordinates ``(u + 0.5, v + 0.5)``; depth range [near, far] mm.
+    """
+    fx, s, cx = Kp[0]
+    fy, cy = Kp[1, 1], Kp[1, 2]
+    P = np.zeros((4, 4))
+    P[0] = [2 * fx / width, 2 * s / width, 2 * (cx + 0.5) / width - 1, 0]
+    P[1] = [0, 2 * fy / height, 2 * (cy + 0.5) / height - 1, 0]
+    P[2] = [0, 0, (far + near) / (far - near), -2 * far * near / (far - near)]
+    P[3] = [0, 0, 1, 0]
+    return P
+
+
+def _near_far(z: np.ndarray) -> tuple[float, float]:
+    zmax = float(np.max(z)) if z.size else 1.0
+    zpos = z[z > 0]
+    zmin = float(zpos.min()) if zpos.size else 1.0
+    near = max(0.5 * zmin, 1e-3 * max(zmax, 1.0), 1e-3)
+    far = max(2.0 * zmax, near * 2.0)
+    return near, far
+
+
+# ------------------------------------------------------------------ public
+def render_mesh(
+    camera: Camera,
+    mesh: TexturedMesh,
+    light_dir=None,
+    ambient: float = 0.3,
+    background=128,
+    noise_sigma: float = 0.0,
+    seed: int | None = None,
+    msaa: bool = True,
+    with_color: bool = True,
+) -> RenderResult:
+    """Render ``mesh`` seen by ``camera`` (with its lens distortion) by rasterization on EGL/llvmpipe.
+
+    Parameters
+    ----------
+    camera : the camera (OpenCV model, world in mm).
+    mesh : the textured mesh (world, mm).
+    light_dir : (3,) world direction towards a distant light, or None for ``DEFAULT_LIGHT_DIR``.
+    ambient : ambient fraction; shade = ambient + (1 - ambient) * max(n . l, 0) (two-sided normals).
+    background : grey level or RGB triple (0..255) where no surface is seen.
+    noise_sigma : std of additive Gaussian sensor noise in 8-bit levels.
+    seed : noise seed (None: derived from the camera id, so renders are reproducible).
+    msaa : 4x multisampling for the colour pass (depth/id/bary never multisample).
+    with_color : False skips the colour pass (``color`` is the plain background).
+
+    Returns
+    -------
+    :class:`RenderResult` (colour, depth mm, triangle id, barycentrics), exact at OpenCV pixel centres.
+    """
+    gl = gl_context()
+    ctx = gl.ctx
+    Kp, (Wp, Hp), map_x, map_y, xy = pinhole_cover(camera)
+    if mesh.faces.shape[0] == 0:
+        H, W = camera.height, camera.width
+        img = np.broadcast_to(background_rgb(background).astype(np.float32), (H, W, 3))
+        return RenderResult(finish_color(img, noise_sigma, camera, seed), np.full((H, W), np.nan, np.float32),
+                            np.full((H, W), -1, np.int32), np.zeros((H, W, 3), np.float32))
+
+    V = camera.world_to_camera(mesh.vertices)
+    tri_cam = V[mesh.faces]  # (F, 3, 3) float64
+    N = mesh.normals() @ camera.R.T
+    near, far = _near_far(V[:, 2])
+    proj = gl_projection(Kp, Wp, Hp, near, far).T.astype("f4").tobytes()  # column-major
+    bg = background_rgb(background)
+
+    corners = mesh.faces.reshape(-1)
+    pos = np.ascontiguousarray(V[corners], dtype="f4")
+    id_fbo, color_fbo, resolve_fbo = gl.framebuffers(Wp, Hp, msaa)
+    ctx.enable(ctx.DEPTH_TEST)
+    ctx.disable(ctx.CULL_FACE)
+
+    buffers = []
+    try:
+        # ---- id pass
+        vbo_pos = ctx.buffer(pos.tobytes())
+        buffers.append(vbo_pos)
+        gl.id_prog["proj"].write(proj)
+        vao_id = ctx.vertex_array(gl.id_prog, [(vbo_pos, "3f", "in_pos")])
+        buffers.append(vao_id)
+        id_fbo.use()
+        id_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        vao_id.render(gl.moderngl.TRIANGLES)
+        pin_ids = np.frombuffer(id_fbo.read(components=1, dtype="i4"), dtype=np.int32).reshape(Hp, Wp)
+        # ---- colour pass
+        pin_rgb = None
+        if with_color:
+            pin_rgb = _color_pass(gl, camera, mesh, N[corners], vbo_pos, proj, light_dir, ambient, bg,
+                                  color_fbo, resolve_fbo, buffers)
+    finally:
+        for b in buffers:
+            b.release()
+
+    import cv2
+
+    if pin_rgb is None:
+        color = np.broadcast_to(bg.astype(np.float32), (camera.height, camera.width, 3))
+    else:
+        color = cv2.remap(pin_rgb, map_x, map_y, interpolation=cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=tuple(bg.tolist()))
+    depth, tri_id, bary = _resolve_gl(gl, camera, Kp, pin_ids, tri_cam, mesh.faces, map_x, map_y, xy)
+    return RenderResult(finish_color(color, noise_sigma, camera, seed), depth, tri_id, bary)
+
+
+def _color_pass(gl: _GL, camera: Camera, mesh: TexturedMesh, normals_cam, vbo_pos, proj: bytes, light_dir,
+                ambient: float, bg: np.ndarray, color_fbo, resolve_fbo, buffers: list) -> np.ndarray:
+    """Shade the pinhole image: (Hp, Wp, 3) float32 in 8-bit levels. GL objects made here go to ``buffers``."""
+    ctx = gl.ctx
+    nrm = np.ascontiguousarray(normals_cam, dtype="f4")
+    uv = np.ascontiguousarray(mesh.uvs[mesh.face_uvs.reshape(-1)], dtype="f4")
+    vbo_n = ctx.buffer(nrm.tobytes())
+    vbo_uv = ctx.buffer(uv.tobytes())
+    buffers += [vbo_n, vbo_uv]
+    prog = gl.color_prog
+    prog["proj"].write(proj)
+    prog["light_dir"].value = tuple(float(x) for x in light_in_camera(camera, light_dir))
+    prog["ambient"].value = float(ambient)
+    prog["dot_albedo"].value = tuple(float(c) / 255.0 for c in np.broadcast_to(mesh.dot_albedo, (3,)))
+    prog["albedo"].value = 0
+    prog["dots"].value = 1
+    gl.texture(mesh.texture).use(location=0)
+    n_dots = 0 if mesh.dot_centers is None else mesh.dot_centers.shape[0]
+    dots = np.zeros((max(n_dots, 1), 4), dtype="f4")
+    if n_dots:
+        dots[:, :3] = camera.world_to_camera(mesh.dot_centers)
+        dots[:, 3] = mesh.dot_radii
+    dots_tex = ctx.texture((dots.shape[0], 1), 4, dots.tobytes(), dtype="f4")
+    dots_tex.filter = (gl.moderngl.NEAREST, gl.moderngl.NEAREST)
+    buffers.append(dots_tex)
+    dots_tex.use(location=1)
+    prog["n_dots"].value = int(n_dots)
+    vao_c = ctx.vertex_array(prog, [(vbo_pos, "3f", "in_pos"), (vbo_n, "3f", "in_normal"), (vbo_uv, "2f", "in_uv")])
+    buffers.append(vao_c)
+    color_fbo.use()
+    color_fbo.clear(*bg.tolist(), 1.0, depth=1.0)  # float buffer in 0..255 levels
+    vao_c.render(gl.moderngl.TRIANGLES)
+    src = color_fbo
+    if resolve_fbo is not None:
+        ctx.copy_framebuffer(resolve_fbo, color_fbo)
+        src = resolve_fbo
+    Wp, Hp = src.size
+    return np.frombuffer(src.read(components=3, dtype="f4"), dtype=np.float32).reshape(Hp, Wp, 3)
+
+
+TRI_TEXTURE_WIDTH = 4096
+
+
+def _resolve_gl(gl: _GL, camera: Camera, Kp, pin_ids, tri_cam, faces, map_x, map_y, xy, rings: int = 2):
+    """Exact depth/id/bary at the distorted pixel centres (GLSL pass, then a numpy neighbourhood search
+    for the few pixels whose 2x2 candidates all miss or straddle an occlusion boundary)."""
+    ctx = gl.ctx
+    W, H = camera.width, camera.height
+    Hp, Wp = pin_ids.shape
+    F = tri_cam.shape[0]
+    tw = TRI_TEXTURE_WIDTH
+    rows = max(1, -(-3 * F // tw))
+    corners = np.zeros((rows * tw, 3), dtype="f4")
+    corners[: 3 * F] = tri_cam.reshape(-1, 3)
+    released = []
+    try:
+        tris = ctx.texture((tw, rows), 3, corners.tobytes(), dtype="f4")
+        ids_tex = ctx.texture((Wp, Hp), 1, np.ascontiguousarray(pin_ids).tobytes(), dtype="i4")
+        released += [tris, ids_tex]
+        for t in (tris, ids_tex):
+            t.filter = (gl.moderngl.NEAREST, gl.moderngl.NEAREST)
+        prog = gl.resolve_prog
+        ids_tex.use(location=0)
+        gl.rays_texture(camera).use(location=1)
+        tris.use(location=2)
+        prog["pin_ids"].value = 0
+        prog["rays"].value = 1
+        prog["tris"].value = 2
+        prog["tw_mask"].value = tw - 1
+        prog["tw_shift"].value = int(np.log2(tw))
+        prog["kp_row0"].value = (float(Kp[0, 0]), float(Kp[0, 1]), float(Kp[0, 2]))
+        prog["kp_row1"].value = (float(Kp[1, 1]), float(Kp[1, 2]))
+        prog["pin_size"].value = (Wp, Hp)
+        prog["tol"].value = 1e-7
+        prog["disc_mm"].value = 1.0
+        fbo = gl.resolve_framebuffer(W, H)
+        fbo.use()
+        ctx.disable(ctx.DEPTH_TEST)
+        gl.fullscreen_vao.render(gl.moderngl.TRIANGLES)
+        ctx.enable(ctx.DEPTH_TEST)
+        depth = np.frombuffer(fbo.read(components=1, attachment=0, dtype="f4"), dtype=np.float32).reshape(H, W).copy()
+        tri_id = np.frombuffer(fbo.read(components=1, attachment=1, dtype="i4"), dtype=np.int32).reshape(H, W).copy()
+        bary4 = np.frombuffer(fbo.read(components=4, attachment=2, dtype="f4"), dtype=np.float32).reshape(H, W, 4)
+        bary = bary4[..., :3].copy()
+        boundary = bary4[..., 3] > 0.5
+    finally:
+        for t in released:
+            t.release()
+    # pixels whose 2x2 candidates all miss, and resolved pixels on occlusion boundaries
+    todo = np.flatnonzero((tri_id.reshape(-1) == -2) | boundary.reshape(-1))
+    tri_id[tri_id == -2] = -1
+    if todo.size and rings > 0:
+        mx, my = map_x.reshape(-1)[todo], map_y.reshape(-1)[todo]
+        i0 = np.clip(np.floor(mx).astype(np.int64), 0, Wp - 2)
+        j0 = np.clip(np.floor(my).astype(np.int64), 0, Hp - 2)
+        cand = np.stack([pin_ids[j0, i0], pin_ids[j0, i0 + 1], pin_ids[j0 + 1, i0], pin_ids[j0 + 1, i0 + 1]], 1) - 1
+        pix, z, tri, b = ring_search(todo, cand, xy.reshape(-1, 2), tri_cam, faces, rings)
+        flat_id, flat_z = tri_id.reshape(-1), depth.reshape(-1)
+        better = (flat_id[pix] < 0) | (z < flat_z[pix])
+        pix, z, tri, b = pix[better], z[better], tri[better], b[better]
+        flat_z[pix] = z
+        flat_id[pix] = tri
+        bary.reshape(-1, 3)[pix] = b
+    bg = tri_id < 0
+    depth[bg] = np.nan
+    bary[bg] = 0.0
+    return depth, tri_id, bary

@@ -1,0 +1,309 @@
+"""Pieces shared by the marker-space retargeting methods (Ribera 2017, Seol 2012).
+
+Conventions
+-----------
+- Markers are ``(F, M, 3)`` float arrays in mm, NaN where a marker is not visible (a gap).
+- Sparse blendshapes are ``(K, M, 3)`` marker displacements at weight 1 (``rig.deltas[:, vertex_ids]``).
+- Weight curves are ``(F, K)`` float arrays, one column per shape name.
+
+Contents: marker-to-character mapping by marker name (with clear errors), marker-set checks for
+performances, per-frame rigid stabilization of marker frames, the "observable shapes" test, weight-curve
+metrics (MAE, per-shape Pearson correlation) and weight-curve writers (CSV, JSON).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from rigbuild.errors import InputError
+from rigbuild.io.atomic import write_json, write_text
+from rigbuild.rig import Rig
+
+#: A shape is "observable" by a marker set when some marker moves at least this much (mm) at weight 1.
+OBSERVABLE_MM = 1.0
+
+
+# ----------------------------------------------------------------------------------- marker mapping
+def map_markers_to_vertices(
+    marker_names: Sequence[str],
+    map_names: Sequence[str],
+    map_vertices: Sequence[int] | np.ndarray,
+    character: str = "character",
+    source: str | os.PathLike | None = None,
+) -> np.ndarray:
+    """Vertex id on the character for each named marker.
+
+    Parameters
+    ----------
+    marker_names : M marker names of the actor's marker set (in the order of the marker arrays).
+    map_names, map_vertices : the character's marker-to-vertex map (names and (M',) vertex ids).
+    character : character name, for messages.
+    source : file the map came from, for messages.
+
+    Returns
+    -------
+    (M,) int64 vertex ids in ``marker_names`` order.
+
+    Raises
+    ------
+    InputError naming every marker that the character map lacks.
+    """
+    lookup = {str(n): int(v) for n, v in zip(map_names, np.asarray(map_vertices).reshape(-1))}
+    missing = [n for n in marker_names if n not in lookup]
+    if missing:
+        raise InputError(
+            f"character '{character}' has no vertex for {len(missing)} of {len(marker_names)} markers: "
+            f"{', '.join(missing[:12])}{' ...' if len(missing) > 12 else ''}",
+            path=source,
+            fix="add these marker names to the character's marker map (name -> vertex id), or drop the "
+            "markers from the take",
+        )
+    return np.array([lookup[n] for n in marker_names], dtype=np.int64)
+
+
+def character_sparse_blendshapes(rig: Rig, vertex_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Neutral marker positions and sparse blendshapes of a character.
+
+    Returns ``s0`` (M, 3) and ``ds`` (K, M, 3) = ``rig.deltas[:, vertex_ids]``, in the rig's units.
+    """
+    vid = np.asarray(vertex_ids, dtype=np.int64)
+    return rig.neutral[vid].copy(), rig.deltas[:, vid].copy()
+
+
+def reorder_markers(
+    markers: np.ndarray,
+    names: Sequence[str],
+    expected: Sequence[str],
+    what: str = "performance",
+    path: str | os.PathLike | None = None,
+) -> np.ndarray:
+    """Reorder ``markers`` (F, M', 3) with ``names`` into the order of ``expected`` (M names).
+
+    Extra markers in the take are dropped. Raises :class:`InputError` if any expected marker is missing
+    (a performance recorded with a different marker set than the training sequence).
+    """
+    names = [str(n) for n in names]
+    idx = {n: i for i, n in enumerate(names)}
+    missing = [n for n in expected if n not in idx]
+    if missing:
+        raise InputError(
+            f"{what} has a different marker set: {len(missing)} of the {len(expected)} training markers are "
+            f"absent ({', '.join(missing[:12])}{' ...' if len(missing) > 12 else ''})",
+            path=path,
+            fix="use a performance captured with the same marker set as the training (ROM) sequence, or "
+            "retrain on a sequence with this marker set",
+        )
+    m = np.asarray(markers, dtype=np.float64)
+    if m.ndim != 3 or m.shape[2] != 3 or m.shape[1] != len(names):
+        raise InputError(f"{what}: markers must be (F, {len(names)}, 3), got {m.shape}", path=path)
+    return m[:, [idx[n] for n in expected]]
+
+
+def visible_mask(markers: np.ndarray) -> np.ndarray:
+    """(F, M) bool: marker has finite x, y and z."""
+    return np.all(np.isfinite(markers), axis=-1)
+
+
+def check_frames(
+    markers: np.ndarray,
+    min_visible: int = 3,
+    what: str = "performance",
+    path: str | os.PathLike | None = None,
+    allow_empty: bool = False,
+) -> np.ndarray:
+    """Check gaps in ``markers`` (F, M, 3); return the (F,) bool of frames with enough visible markers.
+
+    Frames with fewer than ``min_visible`` visible markers cannot be solved. With ``allow_empty=False`` they
+    raise :class:`InputError` listing them; with True they are reported as False so the caller can
+    interpolate the weights. A take with no usable frame always raises.
+    """
+    vis = visible_mask(markers)
+    n_vis = vis.sum(1)
+    ok = n_vis >= min_visible
+    if not ok.any():
+        raise InputError(
+            f"{what}: no frame has {min_visible} or more visible markers ({markers.shape[0]} frames, all gaps)",
+            path=path,
+            fix="check the marker file (units, labelling); NaN marks a gap",
+        )
+    if not ok.all() and not allow_empty:
+        bad = np.flatnonzero(~ok)
+        raise InputError(
+            f"{what}: {bad.size} frame(s) have fewer than {min_visible} visible markers "
+            f"(first: {', '.join(map(str, bad[:10]))})",
+            path=path,
+            fix="fill the gaps in the take, trim those frames, or allow empty frames (their weights are then "
+            "interpolated from the neighbouring frames)",
+        )
+    return ok
+
+
+def interpolate_missing_rows(values: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Linear interpolation over frames of rows of ``values`` (F, K) where ``ok`` (F,) is False."""
+    out = np.array(values, dtype=np.float64, copy=True)
+    if ok.all():
+        return out
+    f = np.arange(out.shape[0])
+    good = np.flatnonzero(ok)
+    for k in range(out.shape[1]):
+        out[~ok, k] = np.interp(f[~ok], good, out[good, k])
+    return out
+
+
+# ------------------------------------------------------------------------------------ stabilization
+def batched_rigid_fit(
+    src: np.ndarray, dst: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame weighted Kabsch: ``R_f, t_f`` minimizing ``sum_m w_fm |R_f src_fm + t_f - dst_fm|^2``.
+
+    src, dst : (F, M, 3) (either may be (M, 3), broadcast over frames); weights : (F, M) non-negative (0 for gaps; NaN entries
+    of src/dst must carry weight 0). Returns R (F, 3, 3), t (F, 3).
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    shape = w.shape + (3,)
+    dst = np.broadcast_to(np.asarray(dst, dtype=np.float64), shape)
+    src = np.broadcast_to(np.asarray(src, dtype=np.float64), shape)
+    src0 = np.where(w[..., None] > 0, src, 0.0)
+    dst0 = np.where(w[..., None] > 0, dst, 0.0)
+    ws = np.maximum(w.sum(1), 1e-300)
+    mu_s = np.einsum("fm,fmc->fc", w, src0) / ws[:, None]
+    mu_d = np.einsum("fm,fmc->fc", w, dst0) / ws[:, None]
+    a = np.where(w[..., None] > 0, src0 - mu_s[:, None], 0.0)
+    b = np.where(w[..., None] > 0, dst0 - mu_d[:, None], 0.0)
+    cov = np.einsum("fm,fmi,fmj->fij", w, b, a)
+    U, _, Vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(U @ Vt))
+    d[d == 0] = 1.0
+    D = np.zeros_like(cov)
+    D[:, 0, 0] = 1.0
+    D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    R = U @ D @ Vt
+    t = mu_d - np.einsum("fij,fj->fi", R, mu_s)
+    return R, t
+
+
+def stabilize(
+    markers: np.ndarray, reference: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Remove per-frame rigid head motion: map each frame onto ``reference`` (M, 3) or (F, M, 3).
+
+    markers : (F, M, 3) with NaN gaps; weights : (M,) or (F, M) per-marker rigidity weights (default 1).
+    Returns stabilized markers (F, M, 3) (NaN kept), R (F, 3, 3), t (F, 3) with ``stable = R x + t``.
+    """
+    vis = visible_mask(markers)
+    w = np.ones(vis.shape) if weights is None else np.broadcast_to(np.asarray(weights, float), vis.shape)
+    w = np.where(vis, w, 0.0)
+    R, t = batched_rigid_fit(markers, reference, w)
+    stable = np.einsum("fij,fmj->fmi", R, np.nan_to_num(markers)) + t[:, None, :]
+    stable[~vis] = np.nan
+    return stable, R, t
+
+
+def rigidity_weights(sparse_deltas: np.ndarray, floor: float = 0.05) -> np.ndarray:
+    """(M,) weights for stabilization: high for markers the expressions move little.
+
+    ``w_m = 1 / (floor + r_m)^2`` with ``r_m`` = largest displacement of marker m over the K sparse
+    blendshapes (K, M, 3), relative to the largest over all markers.
+    """
+    r = np.linalg.norm(sparse_deltas, axis=2).max(0)
+    r = r / max(r.max(), 1e-12)
+    w = 1.0 / (floor + r) ** 2
+    return w / w.max()
+
+
+# ------------------------------------------------------------------------------------------ metrics
+def observable_shapes(sparse_deltas: np.ndarray, threshold_mm: float = OBSERVABLE_MM) -> np.ndarray:
+    """(K,) bool: shape k moves some marker by at least ``threshold_mm`` at weight 1.
+
+    sparse_deltas : (K, M, 3) in mm (e.g. the actor's ground-truth ``rig.deltas[:, marker_vertices]``).
+    """
+    return np.linalg.norm(sparse_deltas, axis=2).max(1) >= threshold_mm
+
+
+def active_shapes(weights_true: np.ndarray, min_range: float = 0.05) -> np.ndarray:
+    """(K,) bool: ground-truth curve k varies (max - min over frames >= ``min_range``)."""
+    w = np.asarray(weights_true, dtype=np.float64)
+    return (w.max(0) - w.min(0)) >= min_range
+
+
+def weight_mae(weights: np.ndarray, weights_true: np.ndarray, shapes: np.ndarray | None = None) -> float:
+    """Mean absolute error over frames and the selected shapes ((K,) bool or indices; default all)."""
+    e = np.abs(np.asarray(weights, float) - np.asarray(weights_true, float))
+    if shapes is not None:
+        e = e[:, shapes]
+    return float(e.mean()) if e.size else float("nan")
+
+
+def per_shape_correlation(weights: np.ndarray, weights_true: np.ndarray) -> np.ndarray:
+    """(K,) Pearson correlation over frames between estimated and true curves (NaN for a constant curve)."""
+    a = np.asarray(weights, float)
+    b = np.asarray(weights_true, float)
+    a = a - a.mean(0)
+    b = b - b.mean(0)
+    den = np.sqrt((a * a).sum(0) * (b * b).sum(0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = (a * b).sum(0) / den
+    r[den <= 1e-12] = np.nan
+    return r
+
+
+def mean_correlation(weights: np.ndarray, weights_true: np.ndarray, shapes: np.ndarray | None = None) -> float:
+    """Mean per-shape Pearson correlation over the selected shapes (a constant estimate counts as 0)."""
+    r = per_shape_correlation(weights, weights_true)
+    if shapes is not None:
+        r = r[shapes]
+    r = np.where(np.isnan(r), 0.0, r)
+    return float(r.mean()) if r.size else float("nan")
+
+
+# ---------------------------------------------------------------------------------- curve writers
+def weight_curves_csv_text(weights: np.ndarray, shape_names: Sequence[str], fps: float) -> str:
+    """CSV text: header ``frame,time,<shape names>``, one row per frame (time in seconds)."""
+    w = np.asarray(weights, dtype=np.float64)
+    if w.ndim != 2 or w.shape[1] != len(shape_names):
+        raise InputError(f"weights must be (F, {len(shape_names)}), got {w.shape}")
+    F = w.shape[0]
+    table = np.column_stack([np.arange(F), np.arange(F) / float(fps), w])
+    buf = io.StringIO()
+    buf.write("frame,time," + ",".join(shape_names) + "\n")
+    np.savetxt(buf, table, delimiter=",", fmt=["%d", "%.6f"] + ["%.6f"] * w.shape[1])
+    return buf.getvalue()
+
+
+def write_weight_curves_csv(path: str | os.PathLike, weights: np.ndarray, shape_names: Sequence[str], fps: float) -> None:
+    """Write weight curves (F, K) as CSV (``frame,time,<shape>...``) atomically."""
+    write_text(path, weight_curves_csv_text(weights, shape_names, fps))
+
+
+def read_weight_curves_csv(path: str | os.PathLike) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """Read a CSV written by :func:`write_weight_curves_csv`: weights (F, K), shape names, times (F,)."""
+    with open(path, encoding="utf-8") as fh:
+        header = fh.readline().strip().split(",")
+    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    return data[:, 2:], header[2:], data[:, 1]
+
+
+def write_weight_curves_json(
+    path: str | os.PathLike,
+    weights: np.ndarray,
+    shape_names: Sequence[str],
+    fps: float,
+    meta: Mapping | None = None,
+) -> None:
+    """Write ``{"fps", "n_frames", "shape_names", "weights": {name: [F values]}, "meta"}`` atomically."""
+    w = np.asarray(weights, dtype=np.float64)
+    write_json(
+        path,
+        {
+            "fps": float(fps),
+            "n_frames": int(w.shape[0]),
+            "shape_names": list(shape_names),
+            "weights": {n: np.round(w[:, k], 6).tolist() for k, n in enumerate(shape_names)},
+            "meta": dict(meta or {}),
+        },
+    )

@@ -1,0 +1,967 @@
+"""Marker-space retargeting with range-of-motion alignment and a geometric prior (Ribera et al. 2017).
+
+Notation (paper section 3): the character has neutral marker positions ``s0`` (M, 3) and sparse delta
+blendshapes ``ds`` (K, M, 3) (its deltas at the marker vertices); the actor has neutral markers ``a0``
+(M, 3) and a training (range-of-motion) sequence ``a`` (F, M, 3). Blendshape transfer (section 4) computes
+personalized sparse actor blendshapes ``dp`` (K, M, 3); retargeting (section 5) finds per-frame weights
+``w`` (K,) from actor marker displacements ``da = a_f - a0`` with the character's dense deltas in the
+geometric prior.
+
+Section 4 terms, all implemented here:
+
+- correlations ``c_kf`` (eq. 5) :func:`correlations`; trust values ``t_k`` (eq. 6) :func:`trust_values`;
+  contrast enhancement (eq. 7-8, r = 15) :func:`enhance_similarity`;
+- key expression extraction (3-frame Gaussian low-pass, summed rows, local peaks) :func:`key_expressions`;
+- soft masks ``u_k`` (eq. 10) :func:`soft_masks`; E_Match (eq. 10);
+- E_Mesh (eq. 11): thin-plate RBF initial guesses ``g_k`` (:class:`ThinPlateRBF`, :func:`rbf_transfer`),
+  cotangent Laplacian of a triangulation of the markers in a 2D parameterization with extra eyelid / lip
+  contact edges (:func:`marker_triangulation`, :func:`marker_laplacian`);
+- E_CEG (eq. 12-13): signed graph Laplacian of the between-blendshape correlations
+  (:func:`cross_expression_laplacian`);
+- alpha = 0.01, beta = 0.1; three sparse (MK x MK) systems, one per coordinate, sharing one CHOLMOD
+  factorization (:func:`transfer_blendshapes`).
+
+Section 5: ``E_Fit + mu E_Prior + lambda E_Sparse`` (eq. 16) with ``E_Prior = (1/N) |L dV w|^2`` on the full
+character mesh (``L dV`` precomputed, :func:`prior_matrix`) solved by iteratively reweighted least squares
+with optional weight bounds (:class:`RiberaRetargeter`).
+
+Units. Everything here works in mm. The paper recommends mu = 0.3 and lambda = 0.6 "for markers in cm and
+the face rig uniformly scaled to roughly match the actor's head". E_Fit and E_Prior are squared lengths and
+E_Sparse is unit-free, so in mm the same balance needs ``lambda_mm = lambda_cm * 100`` (mu unchanged), and
+the prior is evaluated on the character scaled by ``head_scale`` = RMS radius of the actor's neutral markers
+/ RMS radius of the character's (:func:`head_scale`). :class:`RetargetParams` takes the paper's values and
+converts them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import Delaunay, cKDTree
+
+from rigbuild.errors import InputError
+from rigbuild.rig import Rig
+from rigbuild.geometry.rigid import fit_similarity
+from rigbuild.retarget.common import stabilize, visible_mask
+
+PAPER_ALPHA = 0.01
+PAPER_BETA = 0.1
+PAPER_R = 15.0
+PAPER_MU = 0.3
+PAPER_LAMBDA_CM = 0.6
+#: squared-length factor between the paper's cm and our mm
+CM2_TO_MM2 = 100.0
+
+
+# ======================================================================== RBF initial guess (sec. 4.4)
+class ThinPlateRBF:
+    """3D thin-plate (biharmonic, ``phi(r) = r``) RBF interpolant with an affine part.
+
+    ``f(x) = sum_i lambda_i |x - c_i| + A x + b`` with ``f(c_i) = y_i``. centres, values : (M, 3).
+    """
+
+    def __init__(self, centres: np.ndarray, values: np.ndarray):
+        c = np.asarray(centres, dtype=np.float64)
+        y = np.asarray(values, dtype=np.float64)
+        M = c.shape[0]
+        if M < 4:
+            raise InputError(f"thin-plate RBF needs at least 4 markers, got {M}")
+        Phi = np.linalg.norm(c[:, None] - c[None], axis=2)
+        P = np.hstack([c, np.ones((M, 1))])
+        A = np.zeros((M + 4, M + 4))
+        A[:M, :M] = Phi
+        A[:M, M:] = P
+        A[M:, :M] = P.T
+        rhs = np.zeros((M + 4, 3))
+        rhs[:M] = y
+        sol = np.linalg.lstsq(A, rhs, rcond=None)[0]
+        self.centres = c
+        self.lam = sol[:M]
+        self.affine = sol[M:]  # (4, 3): rows x, y, z, 1
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        flat = x.reshape(-1, 3)
+        phi = np.linalg.norm(flat[:, None] - self.centres[None], axis=2)
+        out = phi @ self.lam + flat @ self.affine[:3] + self.affine[3]
+        return out.reshape(x.shape)
+
+
+def rbf_transfer(s0: np.ndarray, ds: np.ndarray, a0: np.ndarray) -> np.ndarray:
+    """Initial guesses ``dg`` (K, M, 3): the RBF mapping ``s0 -> a0`` applied to the character's shapes.
+
+    ``dg_k = f(s0 + ds_k) - f(s0)`` (= ``f(s0 + ds_k) - a0``), the RBF proportion matching of Seol 2012 /
+    Orvalho 2008 used as the initial guess in E_Mesh and as the RBF-transfer baseline.
+    """
+    f = ThinPlateRBF(s0, a0)
+    base = f(s0)
+    return f(s0[None] + ds) - base[None]
+
+
+# ======================================================================== marker mesh (sec. 4.4)
+@dataclass
+class MarkerTriangulation:
+    """Triangulation of the M markers: triangles (T, 3), contact edges (C, 2), uv (M, 2)."""
+
+    triangles: np.ndarray
+    contact_edges: np.ndarray
+    uv: np.ndarray
+
+    @property
+    def edges(self) -> np.ndarray:
+        """(E, 2) unique sorted edges of the triangles plus the contact edges."""
+        t = self.triangles
+        e = np.vstack([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]], self.contact_edges.reshape(-1, 2)])
+        return np.unique(np.sort(e, axis=1), axis=0)
+
+
+def planar_parameterization(points: np.ndarray) -> np.ndarray:
+    """(M, 2) 2D parameterization of face markers (M, 3): projection on their two principal axes.
+
+    A face marker set is a shallow cap; its two largest principal directions are the face's width and
+    height. Used when the character has no UV layout for the markers.
+    """
+    p = np.asarray(points, float)
+    c = p - p.mean(0)
+    _, _, Vt = np.linalg.svd(c, full_matrices=False)
+    return c @ Vt[:2].T
+
+
+def _triangle_min_angle(uv: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    a, b, c = uv[tris[:, 0]], uv[tris[:, 1]], uv[tris[:, 2]]
+
+    def ang(p, q, r):
+        u, v = q - p, r - p
+        cos = (u * v).sum(1) / np.maximum(np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1), 1e-300)
+        return np.degrees(np.arccos(np.clip(cos, -1, 1)))
+
+    return np.minimum(np.minimum(ang(a, b, c), ang(b, c, a)), ang(c, a, b))
+
+
+def marker_triangulation(
+    s0: np.ndarray,
+    ds: np.ndarray,
+    uv: np.ndarray | None = None,
+    contact_pairs: np.ndarray | None = None,
+    min_boundary_angle_deg: float = 12.0,
+    contact_ratio: float = 0.5,
+    contact_neighbours: int = 6,
+) -> MarkerTriangulation:
+    """Triangulate the markers in a 2D parameterization and add eyelid / lip contact edges.
+
+    Parameters
+    ----------
+    s0 : (M, 3) neutral marker positions (character); ds : (K, M, 3) sparse blendshapes.
+    uv : (M, 2) parameterization (default :func:`planar_parameterization` of ``s0``).
+    contact_pairs : (C, 2) marker index pairs to connect (upper/lower eyelid, upper/lower lip). Default:
+        detected - pairs among each marker's ``contact_neighbours`` nearest neighbours whose distance changes
+        by more than ``contact_ratio`` (relative) in some blendshape (lids closing, lips parting).
+    min_boundary_angle_deg : boundary slivers of the Delaunay triangulation below this angle are peeled off.
+    """
+    s0 = np.asarray(s0, float)
+    M = s0.shape[0]
+    uv = planar_parameterization(s0) if uv is None else np.asarray(uv, float)
+    tris = Delaunay(uv).simplices.astype(np.int64)
+    # peel thin boundary triangles (convex-hull slivers) repeatedly
+    for _ in range(M):
+        e = np.sort(np.vstack([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+        _, inv, cnt = np.unique(e, axis=0, return_inverse=True, return_counts=True)
+        boundary_edge = (cnt[inv.reshape(-1)] == 1).reshape(3, -1).T
+        on_boundary = boundary_edge.any(1)
+        thin = on_boundary & (_triangle_min_angle(uv, tris) < min_boundary_angle_deg)
+        if not thin.any() or thin.sum() == tris.shape[0]:
+            break
+        tris = tris[~thin]
+    if contact_pairs is None:
+        tree = cKDTree(s0)
+        kk = min(contact_neighbours + 1, M)
+        _, nn = tree.query(s0, k=kk)
+        pairs = np.unique(np.sort(np.column_stack([np.repeat(np.arange(M), kk - 1), nn[:, 1:].ravel()]), axis=1), axis=0)
+        rest = np.linalg.norm(s0[pairs[:, 0]] - s0[pairs[:, 1]], axis=1)
+        moved = s0[None] + ds
+        d = np.linalg.norm(moved[:, pairs[:, 0]] - moved[:, pairs[:, 1]], axis=2)  # (K, P)
+        change = np.abs(d - rest[None]).max(0) / np.maximum(rest, 1e-9)
+        contact = pairs[change > contact_ratio]
+    else:
+        contact = np.asarray(contact_pairs, dtype=np.int64).reshape(-1, 2)
+    tri_edges = np.unique(np.sort(np.vstack([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
+    if contact.size:
+        known = {tuple(e) for e in tri_edges.tolist()}
+        contact = np.array([e for e in np.sort(contact, axis=1).tolist() if tuple(e) not in known], dtype=np.int64)
+    return MarkerTriangulation(tris, contact.reshape(-1, 2), uv)
+
+
+def marker_laplacian(points: np.ndarray, tri: MarkerTriangulation) -> sp.csr_matrix:
+    """(M, M) cotangent Laplacian of the marker triangulation at ``points`` (M, 3), plus contact edges.
+
+    ``(L x)_i = sum_j w_ij (x_j - x_i)`` with cotangent weights ``w_ij = (cot a_ij + cot b_ij) / 2``
+    (Pinkall and Polthier 1993). Contact edges, which belong to no triangle, get the mean absolute
+    cotangent weight of the triangulation.
+    """
+    p = np.asarray(points, float)
+    M = p.shape[0]
+    t = tri.triangles
+    rows, cols, vals = [], [], []
+    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        # angle at k opposite edge (i, j)
+        u = p[t[:, i]] - p[t[:, k]]
+        v = p[t[:, j]] - p[t[:, k]]
+        cot = (u * v).sum(1) / np.maximum(np.linalg.norm(np.cross(u, v), axis=1), 1e-12)
+        rows += [t[:, i], t[:, j]]
+        cols += [t[:, j], t[:, i]]
+        vals += [0.5 * cot, 0.5 * cot]
+    W = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(M, M)).tocsr()
+    if tri.contact_edges.size:
+        wc = float(np.abs(W.data).mean()) if W.nnz else 1.0
+        c = tri.contact_edges
+        W = W + sp.coo_matrix((np.full(2 * len(c), wc), (np.r_[c[:, 0], c[:, 1]], np.r_[c[:, 1], c[:, 0]])), shape=(M, M)).tocsr()
+    return (W - sp.diags(np.asarray(W.sum(1)).ravel())).tocsr()
+
+
+# ======================================================================== similarity (sec. 4.1)
+def _unit_rows(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    n = np.linalg.norm(x, axis=1)
+    return x / np.maximum(n, 1e-12)[:, None], n
+
+
+def correlations(da: np.ndarray, ds: np.ndarray) -> np.ndarray:
+    """Eq. 5: ``c_kf = da_f . ds_k / (|da_f| |ds_k|)`` (K, F), over the markers visible in frame f.
+
+    da : (F, M, 3) actor marker displacements from the neutral (NaN gaps); ds : (K, M, 3).
+    """
+    vis = visible_mask(da).astype(np.float64)  # (F, M)
+    a = np.nan_to_num(da).reshape(da.shape[0], -1)
+    s = ds.reshape(ds.shape[0], -1)
+    num = s @ a.T  # (K, F)
+    a_norm = np.sqrt((a * a).sum(1))  # (F,)
+    s_norm = np.sqrt(np.einsum("kmc,kmc->km", ds, ds) @ vis.T)  # (K, F) over visible markers
+    den = s_norm * a_norm[None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = np.where(den > 1e-12, num / np.where(den > 1e-12, den, 1.0), 0.0)
+    return c
+
+
+def shape_correlation_matrix(ds: np.ndarray) -> np.ndarray:
+    """(K, K) signed Pearson correlations (eq. 5 form) between sparse blendshapes ds (K, M, 3)."""
+    u, n = _unit_rows(ds.reshape(ds.shape[0], -1))
+    C = u @ u.T
+    C[n < 1e-12] = 0.0
+    C[:, n < 1e-12] = 0.0
+    return C
+
+
+def trust_values(ds: np.ndarray) -> np.ndarray:
+    """Eq. 6 trust values t_k (K,) in [0, 1].
+
+    Shapes are sorted by total displacement ``d_k = |ds_k|`` (largest first); ``t_k = 1 - r_k / max r``
+    with ``r_k`` the sum of positive correlations with the shapes of larger displacement.
+    """
+    d = np.linalg.norm(ds.reshape(ds.shape[0], -1), axis=1)
+    order = np.argsort(-d, kind="stable")
+    Cs = np.maximum(shape_correlation_matrix(ds)[np.ix_(order, order)], 0.0)
+    r_sorted = np.tril(Cs, -1).sum(1)
+    rmax = r_sorted.max()
+    t_sorted = 1.0 - r_sorted / rmax if rmax > 0 else np.ones_like(r_sorted)
+    t = np.empty_like(t_sorted)
+    t[order] = t_sorted
+    return t
+
+
+def contrast(c: np.ndarray, r: float = PAPER_R) -> np.ndarray:
+    """Eq. 7: ``b(c) = e^{rc} / (e^{r/2} + e^{rc})`` (a sigmoid centred at 0.5), computed stably."""
+    return 0.5 * (1.0 + np.tanh(0.5 * r * (np.asarray(c, float) - 0.5)))
+
+
+def enhance_similarity(c: np.ndarray, t: np.ndarray, r: float = PAPER_R) -> np.ndarray:
+    """Eq. 8: ``c~_kf = (1 - t_k) c+_kf + t_k b(c+_kf)`` for c (K, F), t (K,)."""
+    cp = np.maximum(c, 0.0)
+    return (1.0 - t)[:, None] * cp + t[:, None] * contrast(cp, r)
+
+
+def key_expressions(similarity: np.ndarray, segment_starts: np.ndarray | None = None) -> np.ndarray:
+    """Section 4.2: key frames of the training sequence (sorted frame indices).
+
+    Each row of ``similarity`` (K, F) is low-pass filtered with a 3-frame Gaussian kernel (1, 2, 1) / 4,
+    the rows are summed, and the local peaks (strictly above the previous frame, not below the next) of
+    the cumulative curve (with positive similarity) are returned. ``segment_starts``: first frame of each concatenated sequence (the
+    filter does not cross sequence boundaries; default: one sequence).
+    """
+    K, F = similarity.shape
+    starts = np.array([0] if segment_starts is None else segment_starts, dtype=np.int64)
+    bounds = list(starts) + [F]
+    keys = []
+    for s, e in zip(bounds[:-1], bounds[1:]):
+        x = similarity[:, s:e]
+        if x.shape[1] == 0:
+            continue
+        pad = np.pad(x, ((0, 0), (1, 1)), mode="edge")
+        filt = 0.25 * pad[:, :-2] + 0.5 * pad[:, 1:-1] + 0.25 * pad[:, 2:]
+        cum = filt.sum(0)
+        n = cum.size
+        if n == 1:
+            keys.append(np.array([s]))
+            continue
+        prev = np.r_[-np.inf, cum[:-1]]
+        nxt = np.r_[cum[1:], -np.inf]
+        peaks = np.flatnonzero((cum > prev) & (cum >= nxt) & (cum > 0))
+        keys.append(peaks + s)
+    return np.concatenate(keys) if keys else np.zeros(0, dtype=np.int64)
+
+
+def soft_masks(ds: np.ndarray) -> np.ndarray:
+    """Eq. 10 soft masks u_k (K, M): ``|ds_k^m| / max_m |ds_k^m|`` (0 for a shape that moves no marker)."""
+    n = np.linalg.norm(ds, axis=2)
+    mx = n.max(1, keepdims=True)
+    return np.where(mx > 1e-12, n / np.maximum(mx, 1e-12), 0.0)
+
+
+def cross_expression_laplacian(C: np.ndarray) -> np.ndarray:
+    """Eq. 12 signed graph Laplacian G (K, K) of the cross-expression graph with edge weights C (K, K).
+
+    ``(G x)_k = (1 / sum_{l != k} |c_kl|) sum_{l != k} c_kl (x_l - x_k)``.
+    """
+    W = np.array(C, dtype=np.float64)
+    np.fill_diagonal(W, 0.0)
+    n = np.abs(W).sum(1)
+    Wn = np.where(n[:, None] > 1e-12, W / np.maximum(n, 1e-12)[:, None], 0.0)
+    return Wn - np.diag(Wn.sum(1))
+
+
+# ======================================================================== transfer (sec. 4.6)
+@dataclass
+class TransferParams:
+    """Blendshape-transfer parameters (paper values by default).
+
+    alpha : E_Mesh weight (0.01); beta : E_CEG weight (0.1); r : contrast steepness (15).
+    ceg_reference : ``"character"`` (eq. 13 as written: ``Lambda(dp - ds)``) or ``"rbf"`` (``Lambda(dp - dg)``).
+    epsilon : tiny Tikhonov weight pulling ``dp`` to ``dg``; makes the system positive definite where E_Match
+        has no support (E_Mesh and E_CEG leave a common translation free). Negligible otherwise.
+    match : ``"faithful"`` (eq. 10 as written) or ``"activation"``: the activation-aware E_Match (see
+        :func:`transfer_blendshapes`), ``match_iterations`` alternations.
+    solver : ``"kronecker"`` (:func:`kron_sum_solve`, exact/PCG on the Kronecker-sum structure) or
+        ``"cholmod"`` (sparse Cholesky of the assembled (MK x MK) matrix; same answer, slower).
+    """
+
+    alpha: float = PAPER_ALPHA
+    beta: float = PAPER_BETA
+    r: float = PAPER_R
+    ceg_reference: str = "character"
+    epsilon: float = 1e-6
+    match: str = "faithful"
+    match_iterations: int = 2
+    solver: str = "kronecker"
+
+
+@dataclass
+class TransferResult:
+    """Output of :func:`transfer_blendshapes`. Shapes: K shapes, M markers, F training frames."""
+
+    dp: np.ndarray  # (K, M, 3) personalized sparse actor blendshapes
+    dg: np.ndarray  # (K, M, 3) RBF initial guesses
+    keys: np.ndarray  # (F',) key frame indices into the training sequence
+    similarity: np.ndarray  # (K, F) enhanced similarity c~
+    trust: np.ndarray  # (K,)
+    masks: np.ndarray  # (K, M)
+    triangulation: MarkerTriangulation
+    info: dict = field(default_factory=dict)
+
+
+def _cholmod_solve(A: sp.spmatrix, B: np.ndarray) -> np.ndarray:
+    """Solve SPD ``A X = B`` (B: (n, r)) with cvxopt's CHOLMOD (one factorization, r right-hand sides)."""
+    import cvxopt
+    import cvxopt.cholmod
+
+    A = sp.tril(A).tocoo()
+    Ac = cvxopt.spmatrix(A.data.tolist(), A.row.tolist(), A.col.tolist(), A.shape)
+    X = cvxopt.matrix(np.asfortranarray(B, dtype=np.float64))
+    cvxopt.cholmod.options["supernodal"] = 2
+    cvxopt.cholmod.linsolve(Ac, X, uplo="L")
+    return np.array(X).reshape(B.shape)
+
+
+def kron_sum_solve(
+    d: np.ndarray, C: np.ndarray, Bk: np.ndarray, R: np.ndarray, tol: float = 1e-10, max_iter: int = 200
+) -> np.ndarray:
+    """Solve ``(diag(d) + I_K (x) C + Bk (x) I_M) x = r`` for every coordinate, exploiting the Kronecker sum.
+
+    This is the E_Align system of :func:`align_system` in the ordering ``index = k * M + m``: d (K, M)
+    diagonal (E_Match, epsilon), C (M, M) = ``alpha/M L^T L`` (E_Mesh), Bk (K, K) = ``beta/M G^T G``
+    (E_CEG); R (K, M, 3) right-hand sides, one per coordinate. When ``d`` is constant over markers the
+    matrix is a Kronecker sum ``B (x) I + I (x) C`` and is solved exactly by diagonalizing B (K x K) and C
+    (M x M); otherwise that Kronecker sum (with ``d`` averaged over markers) preconditions conjugate
+    gradients. Returns x (K, M, 3).
+    """
+    K, M = d.shape
+    dbar = d.mean(1)
+    lam, U = np.linalg.eigh(Bk + np.diag(dbar))
+    sig, V = np.linalg.eigh(C)
+    denom = lam[:, None] + sig[None, :]
+
+    Ut, Vt = U.T, V.T
+
+    def precond(X: np.ndarray) -> np.ndarray:  # X (3, K, M)
+        return U @ ((Ut @ X @ V) / denom) @ Vt
+
+    def matvec(X: np.ndarray) -> np.ndarray:
+        return d * X + X @ C + Bk @ X
+
+    R = np.ascontiguousarray(np.moveaxis(R, 2, 0))
+    x = precond(R)
+    if np.allclose(d, dbar[:, None], rtol=1e-12, atol=0.0):
+        return np.moveaxis(x, 0, 2)
+    r = R - matvec(x)
+    z = precond(r)
+    p = z.copy()
+    rz = (r * z).sum((1, 2))
+    rnorm0 = np.sqrt((R * R).sum((1, 2))) + 1e-300
+    for _ in range(max_iter):
+        Ap = matvec(p)
+        step = rz / np.maximum((p * Ap).sum((1, 2)), 1e-300)
+        x += step[:, None, None] * p
+        r -= step[:, None, None] * Ap
+        if np.all(np.sqrt((r * r).sum((1, 2))) <= tol * rnorm0):
+            break
+        z = precond(r)
+        rz_new = (r * z).sum((1, 2))
+        p = z + (rz_new / np.maximum(rz, 1e-300))[:, None, None] * p
+        rz = rz_new
+    return np.moveaxis(x, 0, 2)
+
+
+def align_terms(
+    ds: np.ndarray,
+    dg: np.ndarray,
+    da_keys: np.ndarray,
+    sim_keys: np.ndarray,
+    masks: np.ndarray,
+    lap: sp.spmatrix,
+    params: TransferParams,
+    activations: np.ndarray | None = None,
+    targets: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The E_Align normal equations in Kronecker form: d (K, M), C (M, M), Bk (K, K), R (K, M, 3).
+
+    ``A = diag(d) + I_K (x) C + Bk (x) I_M`` (one matrix for x, y and z); see :func:`align_system` for the
+    terms. :func:`kron_sum_solve` solves it.
+    """
+    K, M, _ = ds.shape
+    Fk = max(da_keys.shape[0], 1)
+    vis = visible_mask(da_keys).astype(np.float64)
+    a = np.nan_to_num(da_keys)
+    if activations is None:
+        d_match = (sim_keys @ vis) / Fk
+        b_match = np.einsum("kf,km,fmc->kmc", sim_keys, masks, a) / Fk
+    else:
+        h = activations
+        u2 = masks * masks
+        d_match = ((sim_keys * h * h) @ vis) * u2 / Fk
+        b_match = np.einsum("kf,km,kfmc->kmc", sim_keys * h, u2, np.nan_to_num(targets) * vis[None, :, :, None]) / Fk
+    L = lap.toarray() if sp.issparse(lap) else np.asarray(lap)
+    C = (params.alpha / M) * (L.T @ L)
+    G = cross_expression_laplacian(shape_correlation_matrix(ds))
+    Bk = (params.beta / M) * (G.T @ G)
+    ref = ds if params.ceg_reference == "character" else dg
+    R = (b_match + params.epsilon * dg + np.einsum("kmc,mn->knc", dg, C) + np.einsum("kl,lmc->kmc", Bk, ref))
+    return d_match + params.epsilon, C, Bk, R
+
+
+def align_system(
+    s0: np.ndarray,
+    ds: np.ndarray,
+    dg: np.ndarray,
+    da_keys: np.ndarray,
+    sim_keys: np.ndarray,
+    masks: np.ndarray,
+    lap: sp.spmatrix,
+    params: TransferParams,
+    activations: np.ndarray | None = None,
+    targets: np.ndarray | None = None,
+) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Normal equations of E_Align (eq. 4) = E_Match + alpha E_Mesh + beta E_CEG (+ epsilon |dp - dg|^2).
+
+    Unknown ordering ``index = k * M + m``; the same (MK x MK) matrix serves x, y and z. da_keys (F', M, 3)
+    (NaN gaps), sim_keys (K, F'), masks (K, M), lap (M, M). Returns A (MK, MK) and B (MK, 3).
+
+    With ``activations`` h (K, F') and ``targets`` r (K, F', M, 3) the match term becomes the activation-aware
+    ``(1/F) sum c~_kf |h_kf dp_k - diag(u_k) r_kf|^2`` (see :func:`transfer_blendshapes`, ``match``).
+    """
+    K, M, _ = ds.shape
+    Fk = max(da_keys.shape[0], 1)
+    vis = visible_mask(da_keys).astype(np.float64)  # (F', M)
+    a = np.nan_to_num(da_keys)
+    if activations is None:
+        # E_Match (eq. 10): (1/F) sum_f sum_k c~_kf |dp_k - diag(u_k) da_f|^2 (visible markers only)
+        d_match = (sim_keys @ vis) / Fk  # (K, M)
+        b_match = np.einsum("kf,km,fmc->kmc", sim_keys, masks, a) / Fk
+    else:
+        # activation-aware match with the mask as a residual weight: c~ |diag(u_k) (h_kf dp_k - r_kf)|^2
+        h = activations
+        u2 = masks * masks
+        d_match = ((sim_keys * h * h) @ vis) * u2 / Fk
+        b_match = np.einsum("kf,km,kfmc->kmc", sim_keys * h, u2, np.nan_to_num(targets) * vis[None, :, :, None]) / Fk
+    LtL = (lap.T @ lap).tocsr()
+    G = cross_expression_laplacian(shape_correlation_matrix(ds))
+    GtG = G.T @ G
+    IK = sp.identity(K, format="csr")
+    IM = sp.identity(M, format="csr")
+    A = (
+        sp.diags(d_match.ravel() + params.epsilon)
+        + (params.alpha / M) * sp.kron(IK, LtL, format="csr")
+        + (params.beta / M) * sp.kron(sp.csr_matrix(GtG), IM, format="csr")
+    )
+    ref = ds if params.ceg_reference == "character" else dg
+    B = np.empty((K * M, 3))
+    for c in range(3):
+        g = dg[..., c]
+        B[:, c] = (
+            b_match[..., c].ravel()
+            + params.epsilon * g.ravel()
+            + (params.alpha / M) * (LtL @ g.T).T.ravel()
+            + (params.beta / M) * (GtG @ ref[..., c]).ravel()
+        )
+    return A.tocsr(), B
+
+
+def training_displacements(
+    training: np.ndarray, a0: np.ndarray, rigidity: np.ndarray | None = None, stabilize_frames: bool = True
+) -> np.ndarray:
+    """Actor displacements ``da_f = a_f - a0`` (F, M, 3) of a training sequence with head motion removed."""
+    if stabilize_frames:
+        training, _, _ = stabilize(training, a0, rigidity)
+    return training - a0[None]
+
+
+def transfer_blendshapes(
+    s0: np.ndarray,
+    ds: np.ndarray,
+    a0: np.ndarray,
+    da: np.ndarray,
+    params: TransferParams | None = None,
+    uv: np.ndarray | None = None,
+    contact_pairs: np.ndarray | None = None,
+    segment_starts: np.ndarray | None = None,
+) -> TransferResult:
+    """Automatic blendshape transfer (section 4): personalized sparse actor blendshapes.
+
+    Parameters
+    ----------
+    s0 : (M, 3) character neutral markers; ds : (K, M, 3) character sparse blendshapes (character units).
+    a0 : (M, 3) actor neutral markers (mm); da : (F, M, 3) stabilized training displacements (mm, NaN gaps).
+    params : :class:`TransferParams`. uv, contact_pairs : see :func:`marker_triangulation`.
+    segment_starts : first frame of each concatenated training sequence (for the key-frame filter).
+
+    ``params.match = "faithful"`` minimizes eq. 4 exactly as written. Measured weak spot (the paper's sec. 6.3
+    notes it): eq. 10's minimizer is a similarity-weighted *mean* of masked key expressions; every key with a
+    positive similarity (partial activations, mixtures, near-neutral frames) pulls ``dp_k`` toward a smaller
+    shape, and ``diag(u_k)`` damps the actor's data where the character's shape falls off, so the shapes
+    shrink (median scale 0.33 on the synthetic ICT actor). ``match = "activation"`` is the offered fix: the
+    activation of every shape in every key is solved jointly with the shapes (alternating, starting from the
+    RBF guesses; :func:`key_activations`) and the match term becomes
+    ``(1/F) sum_f sum_k c~_kf |diag(u_k) (h_kf dp_k - r_kf)|^2`` - the key expression minus what the other
+    shapes explain, compared at the shape's activation, with the soft mask as a residual weight. The
+    correlations, trust, contrast enhancement, key extraction, E_Mesh and E_CEG are unchanged.
+
+    Returns
+    -------
+    :class:`TransferResult` with ``dp`` (K, M, 3) in mm.
+    """
+    params = params or TransferParams()
+    if params.match not in ("faithful", "activation"):
+        raise InputError(f"unknown match '{params.match}'", fix="use faithful or activation")
+    s0 = np.asarray(s0, float)
+    ds = np.asarray(ds, float)
+    a0 = np.asarray(a0, float)
+    K, M, _ = ds.shape
+    if a0.shape != (M, 3) or da.ndim != 3 or da.shape[1:] != (M, 3):
+        raise InputError(f"marker count mismatch: character {M}, actor neutral {a0.shape}, training {da.shape}")
+    dg = rbf_transfer(s0, ds, a0)
+    # correlations in the actor's frame: rotate the character's displacements by the s0 -> a0 rotation
+    _, Rsa, _ = fit_similarity(s0, a0)
+    ds_rot = ds @ Rsa.T
+    c = correlations(da, ds_rot)
+    t = trust_values(ds)
+    sim = enhance_similarity(c, t, params.r)
+    keys = key_expressions(sim, segment_starts)
+    masks = soft_masks(ds)
+    tri = marker_triangulation(s0, ds, uv=uv, contact_pairs=contact_pairs)
+    lap = marker_laplacian(a0, tri)
+
+    def solve(h=None, r=None) -> np.ndarray:
+        if params.solver == "cholmod":
+            A, B = align_system(s0, ds_rot, dg, da[keys], sim[:, keys], masks, lap, params, h, r)
+            return _cholmod_solve(A, B).reshape(K, M, 3)
+        d, C, Bk, R = align_terms(ds_rot, dg, da[keys], sim[:, keys], masks, lap, params, h, r)
+        return kron_sum_solve(d, C, Bk, R)
+
+    info = {"n_keys": int(keys.size), "match": params.match}
+    if params.match == "activation":
+        dp = dg.copy()
+        for _ in range(params.match_iterations):
+            h, r = key_activations(dp, da[keys])
+            dp = solve(h, r)
+    elif params.match == "faithful":
+        dp = solve()
+    else:
+        raise InputError(f"unknown match '{params.match}'", fix="use faithful or activation")
+    return TransferResult(dp, dg, keys, sim, t, masks, tri, info=info)
+
+
+def key_activations(dp: np.ndarray, da_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Activations of every shape in every key expression and each shape's share of the key expression.
+
+    dp (K, M, 3) current actor blendshapes; da_keys (F', M, 3) key displacements (NaN gaps). The weights
+    ``h`` (K, F') in [0, 1] fit all shapes jointly to each key (least squares, bounds [0, 1]); the target of
+    shape k in key f is the key minus what the other shapes explain, ``r_kf = da_f - sum_{l != k} h_lf dp_l``
+    (K, F', M, 3).
+    """
+    K = dp.shape[0]
+    rt = RiberaRetargeter(dp, np.zeros((K, K)), RetargetParams(mu=0.0, lambda_cm=0.0, bounds=(0.0, 1.0)))
+    h = rt.solve(da_keys).T  # (K, F')
+    full = np.einsum("kf,kmc->fmc", h, dp)  # (F', M, 3)
+    r = da_keys[None] - full[None] + h[:, :, None, None] * dp[:, None]
+    return h, r
+
+
+# ======================================================================== geometric prior (sec. 5)
+def mesh_cotangent_laplacian(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
+    """(N, N) cotangent Laplacian of a triangle mesh (libigl ``cotmatrix``; non-finite entries zeroed)."""
+    import igl
+
+    L = igl.cotmatrix(np.asarray(vertices, np.float64), np.asarray(faces, np.int64))
+    L = sp.csr_matrix(L)
+    bad = ~np.isfinite(L.data)
+    if bad.any():
+        L.data[bad] = 0.0
+    return L
+
+
+def prior_matrix(neutral: np.ndarray, deltas: np.ndarray, faces: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """Eq. 15 as a (K, K) quadratic form: ``E_Prior(w) = w^T Q w = (1/N) |L dV w|^2``.
+
+    neutral (N, 3), deltas (K, N, 3) of the character (mm), faces (F, 3). ``L dV`` is precomputed once
+    (cotangent Laplacian applied per coordinate); ``scale`` is the uniform scale that brings the rig to the
+    actor's head size (the Laplacian's cotangent weights are scale invariant, the deltas scale).
+    """
+    L = mesh_cotangent_laplacian(neutral, faces)
+    K, N, _ = deltas.shape
+    Q = np.zeros((K, K))
+    for c in range(3):
+        LD = L @ deltas[:, :, c].T  # (N, K)
+        Q += LD.T @ LD
+    return Q * (scale**2) / N
+
+
+def head_scale(a0: np.ndarray, s0: np.ndarray) -> float:
+    """Uniform scale that makes the character's marker set ``s0`` as large as the actor's ``a0`` (RMS radius)."""
+    ra = np.sqrt(((a0 - a0.mean(0)) ** 2).sum(1).mean())
+    rs = np.sqrt(((s0 - s0.mean(0)) ** 2).sum(1).mean())
+    return float(ra / rs) if rs > 0 else 1.0
+
+
+@dataclass
+class RetargetParams:
+    """Retargeting parameters in the paper's units; converted to mm internally.
+
+    mu : E_Prior weight (paper 0.3). lambda_cm : E_Sparse weight for markers in cm (paper 0.6); in mm the
+    solver uses ``lambda_cm * 100``. bounds : (lo, hi) weight bounds, either may be None (no bound).
+    irls_iterations, irls_eps : IRLS for the L1 term (``|w| ~ w^2 / |w_prev|``). active_set_passes : passes of
+    the bound-constrained solve. refine_rigid : extra rounds of rigid head-motion removal against the fitted
+    expression.
+    """
+
+    mu: float = PAPER_MU
+    lambda_cm: float = PAPER_LAMBDA_CM
+    bounds: tuple[float | None, float | None] | None = None
+    irls_iterations: int = 8
+    irls_eps: float = 1e-3
+    active_set_passes: int = 6
+    refine_rigid: int = 1
+
+    @property
+    def lambda_mm(self) -> float:
+        return self.lambda_cm * CM2_TO_MM2
+
+
+def _masked_system(A: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """Rows/columns of fixed variables of A (F, K, K) replaced by the identity (free: (F, K) bool)."""
+    f = free.astype(A.dtype)
+    out = A * f[:, :, None]
+    out *= f[:, None, :]
+    k = np.arange(A.shape[1])
+    out[:, k, k] += 1.0 - f
+    return out
+
+
+class RiberaRetargeter:
+    """Per-frame weights minimizing eq. 16: ``(1/M)|da - P w|^2 + mu w^T Q w + (lambda/K) |w|_1``.
+
+    dp : (K, M, 3) personalized sparse actor blendshapes (mm); Q : (K, K) prior form from
+    :func:`prior_matrix` (already scaled to the actor's head); params : :class:`RetargetParams`.
+    Frames with gaps use their visible markers (E_Fit over the visible ones, normalized by their count).
+    """
+
+    def __init__(self, dp: np.ndarray, Q: np.ndarray, params: RetargetParams | None = None):
+        self.params = params or RetargetParams()
+        self.dp = np.asarray(dp, float)
+        K, M, _ = self.dp.shape
+        self.K, self.M = K, M
+        self.P = self.dp.transpose(1, 2, 0).reshape(M * 3, K)  # rows (m, c)
+        self.Q = np.asarray(Q, float)
+        self.PtP_m = np.einsum("mck,mcl->mkl", self.dp.transpose(1, 2, 0), self.dp.transpose(1, 2, 0))  # (M,K,K)
+        self._full = self._system(np.ones(M, bool))
+        lo, hi = (None, None) if self.params.bounds is None else self.params.bounds
+        self.lo = -np.inf if lo is None else float(lo)
+        self.hi = np.inf if hi is None else float(hi)
+
+    def _system(self, vis: np.ndarray) -> np.ndarray:
+        n = max(int(vis.sum()), 1)
+        if not hasattr(self, "_PtP"):
+            self._PtP = self.PtP_m.sum(0)
+        hidden = ~vis
+        PtP = self._PtP - self.PtP_m[hidden].sum(0) if hidden.sum() < vis.sum() else self.PtP_m[vis].sum(0)
+        return 2.0 * PtP / n + 2.0 * self.params.mu * self.Q
+
+    def _rhs(self, da: np.ndarray, vis: np.ndarray) -> np.ndarray:
+        """(F, K) ``(2/M_f) P^T da_f`` over visible markers."""
+        a = np.where(vis[..., None], np.nan_to_num(da), 0.0).reshape(da.shape[0], -1)
+        n = np.maximum(vis.sum(1), 1)
+        return 2.0 * (a @ self.P) / n[:, None]
+
+    def _bounded_solve(self, A: np.ndarray, b: np.ndarray, shared: bool = False) -> np.ndarray:
+        """Batched ``min 1/2 w^T A_f w - b_f^T w`` s.t. lo <= w <= hi by a primal active-set method.
+
+        A (F, K, K) SPD, b (F, K); ``shared``: every A_f is the complete-visibility system (one inverse serves
+        the unconstrained start). Exact: KKT signs are checked each pass; frames where the fast primal-dual
+        passes do not settle finish with :meth:`_primal_active_set`.
+        """
+        F, K = b.shape
+        if not (np.isfinite(self.lo) or np.isfinite(self.hi)):
+            return np.linalg.solve(A, b[..., None])[..., 0]
+        # start from the unconstrained solution's violations (one shared inverse when every frame is complete)
+        if shared and A.shape[0] > 1:
+            if not hasattr(self, "_full_inv"):
+                self._full_inv = np.linalg.inv(self._full)
+            w = b @ self._full_inv.T
+        else:
+            w = np.linalg.solve(A, b[..., None])[..., 0]
+        at_lo = w < self.lo
+        at_hi = w > self.hi
+        todo = np.flatnonzero(at_lo.any(1) | at_hi.any(1))
+        self.last_passes = 0
+        self.unconverged = 0
+        for _ in range(self.params.active_set_passes):
+            if todo.size == 0:
+                break
+            self.last_passes += 1
+            Ab, bb, lo_b, hi_b = A[todo], b[todo], at_lo[todo], at_hi[todo]
+            fixed = lo_b | hi_b
+            wf = np.where(lo_b, self.lo, 0.0) + np.where(hi_b, self.hi, 0.0)
+            free = ~fixed
+            Af = _masked_system(Ab, free)
+            bf = np.where(free, bb - (Ab @ wf[..., None])[..., 0], wf)
+            wb = np.linalg.solve(Af, bf[..., None])[..., 0]
+            grad = (Ab @ wb[..., None])[..., 0] - bb
+            release = (lo_b & (grad < -1e-12)) | (hi_b & (grad > 1e-12))
+            new_lo = free & (wb < self.lo - 1e-12)
+            new_hi = free & (wb > self.hi + 1e-12)
+            w[todo] = wb
+            at_lo[todo] = (lo_b & ~release) | new_lo
+            at_hi[todo] = (hi_b & ~release) | new_hi
+            todo = todo[release.any(1) | new_lo.any(1) | new_hi.any(1)]
+        if todo.size:
+            w[todo] = self._primal_active_set(A[todo], b[todo], np.clip(w[todo], self.lo, self.hi))
+        return np.clip(w, self.lo, self.hi)
+
+    def _primal_active_set(self, A: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """Batched primal active-set method from a feasible start (cannot cycle; for the few frames where
+        the fast primal-dual active set above did not settle). One constraint changes per step."""
+        F, K = b.shape
+        lo, hi = self.lo, self.hi
+        at_lo = w <= lo
+        at_hi = w >= hi
+        todo = np.arange(F)
+        rows = np.arange(F)
+        for _ in range(6 * K + 10):
+            if todo.size == 0:
+                break
+            Ab, bb, lo_b, hi_b, wt = A[todo], b[todo], at_lo[todo], at_hi[todo], w[todo]
+            fixed = lo_b | hi_b
+            wf = np.where(lo_b, lo, 0.0) + np.where(hi_b, hi, 0.0)
+            free = ~fixed
+            Af = _masked_system(Ab, free)
+            bf = np.where(free, bb - (Ab @ wf[..., None])[..., 0], wf)
+            wb = np.linalg.solve(Af, bf[..., None])[..., 0]
+            d = wb - wt
+            below = free & (wb < lo - 1e-12)
+            above = free & (wb > hi + 1e-12)
+            infeasible = below.any(1) | above.any(1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                alpha = np.where(below, (lo - wt) / d, np.inf)
+                alpha = np.minimum(alpha, np.where(above, (hi - wt) / d, np.inf))
+            r = rows[: todo.size]
+            blk = np.argmin(alpha, axis=1)
+            step = np.clip(alpha[r, blk], 0.0, 1.0)
+            w_new = np.where(infeasible[:, None], wt + step[:, None] * d, wb)
+            lo_new, hi_new = lo_b.copy(), hi_b.copy()
+            inf_r = r[infeasible]
+            lo_new[inf_r, blk[infeasible]] |= below[inf_r, blk[infeasible]]
+            hi_new[inf_r, blk[infeasible]] |= above[inf_r, blk[infeasible]]
+            # feasible frames: check multipliers, release the worst
+            grad = (Ab @ w_new[..., None])[..., 0] - bb
+            viol = np.where(lo_b, -grad, 0.0) + np.where(hi_b, grad, 0.0)  # > 0: wrong sign
+            worst = np.argmax(viol, axis=1)
+            release = ~infeasible & (viol[r, worst] > 1e-10)
+            rel_r = r[release]
+            lo_new[rel_r, worst[release]] = False
+            hi_new[rel_r, worst[release]] = False
+            w[todo] = np.clip(w_new, lo, hi)
+            at_lo[todo] = lo_new
+            at_hi[todo] = hi_new
+            todo = todo[infeasible | release]
+        self.unconverged = int(todo.size)
+        return w
+
+    def solve(self, da: np.ndarray) -> np.ndarray:
+        """Weights (F, K) for stabilized actor displacements da (F, M, 3) (NaN gaps)."""
+        da = np.asarray(da, float)
+        if da.ndim == 2:
+            return self.solve(da[None])[0]
+        F = da.shape[0]
+        vis = visible_mask(da)
+        b = self._rhs(da, vis)
+        A = np.broadcast_to(self._full, (F, self.K, self.K)).copy()
+        partial = ~vis.all(1)
+        if partial.sum() == 1:
+            A[partial] = self._system(vis[partial][0])
+        elif partial.any():
+            pats, inv = np.unique(vis[partial], axis=0, return_inverse=True)
+            systems = np.stack([self._system(p) for p in pats])
+            A[partial] = systems[inv.reshape(-1)]
+        lam = self.params.lambda_mm / self.K
+        shared = not partial.any()
+        if self.lo >= 0:
+            # with w >= 0 the L1 term is linear, (lambda/K) sum_k w_k: exact, no reweighting needed
+            return self._bounded_solve(A, b - lam, shared)
+        w = self._bounded_solve(A, b, shared)
+        if lam > 0:
+            diag_idx = np.arange(self.K)
+            for _ in range(self.params.irls_iterations):
+                Ai = A.copy()
+                Ai[:, diag_idx, diag_idx] += lam / (np.abs(w) + self.params.irls_eps)
+                w = self._bounded_solve(Ai, b)
+        return w
+
+    def solve_frame(self, da: np.ndarray) -> np.ndarray:
+        """Weights (K,) for one stabilized frame da (M, 3)."""
+        return self.solve(np.asarray(da, float)[None])[0]
+
+
+# ======================================================================== end-to-end model
+@dataclass
+class RiberaModel:
+    """Everything needed to retarget performances of one actor onto one character.
+
+    a0 : (M, 3) actor neutral (mm); dp : (K, M, 3) actor blendshapes used in E_Fit; Q : (K, K) prior;
+    rigidity : (M,) stabilization weights; shape_names : K names; transfer : the transfer result (or None
+    for the parallel-parametrization method).
+    """
+
+    a0: np.ndarray
+    dp: np.ndarray
+    Q: np.ndarray
+    rigidity: np.ndarray
+    shape_names: list[str]
+    params: RetargetParams
+    transfer: TransferResult | None = None
+
+    def retargeter(self) -> RiberaRetargeter:
+        return RiberaRetargeter(self.dp, self.Q, self.params)
+
+    def retarget(self, markers: np.ndarray, retargeter: RiberaRetargeter | None = None) -> np.ndarray:
+        """Weights (F, K) for raw performance markers (F, M, 3) mm with head motion and NaN gaps.
+
+        Head motion is removed per frame (weighted rigid fit to ``a0`` with the rigidity weights), then
+        ``refine_rigid`` times re-fitted against the fitted expression ``a0 + P w`` with uniform weights.
+        """
+        rt = retargeter or self.retargeter()
+        stable, _, _ = stabilize(markers, self.a0, self.rigidity)
+        w = rt.solve(stable - self.a0[None])
+        for _ in range(self.params.refine_rigid):
+            expr = self.a0[None] + np.einsum("fk,kmc->fmc", w, self.dp)
+            stable, _, _ = stabilize(markers, expr)
+            w = rt.solve(stable - self.a0[None])
+        return w
+
+
+METHODS = ("ribera", "ribera_activation", "rbf", "parallel")
+
+
+def build_model(
+    character: Rig,
+    vertex_ids: np.ndarray,
+    a0: np.ndarray,
+    training: np.ndarray | None,
+    method: str = "ribera",
+    transfer_params: TransferParams | None = None,
+    retarget_params: RetargetParams | None = None,
+    segment_starts: np.ndarray | None = None,
+    actor_blendshapes: np.ndarray | None = None,
+    uv: np.ndarray | None = None,
+    contact_pairs: np.ndarray | None = None,
+) -> RiberaModel:
+    """Prepare retargeting of an actor's markers onto ``character``.
+
+    Parameters
+    ----------
+    character : the character rig (mm), any topology and shape set.
+    vertex_ids : (M,) character vertex of each actor marker (see ``common.map_markers_to_vertices``).
+    a0 : (M, 3) actor neutral markers (mm).
+    training : (F, M, 3) the actor's training (ROM) markers (mm, NaN gaps, head motion allowed); unused by
+        ``"parallel"``.
+    method : ``"ribera"`` (section 4 transfer as written), ``"ribera_activation"`` (the activation-aware
+        E_Match option, see :func:`transfer_blendshapes`),
+        ``"rbf"`` (baseline: the RBF guesses ``g_k`` used directly), ``"parallel"`` (parallel
+        parametrization: ``actor_blendshapes`` (K, M, 3) from the actor's personalized rig, which shares the
+        character's shape names, used directly).
+    segment_starts : first frame of each concatenated training sequence.
+
+    All methods retarget with the same section-5 energy (E_Fit + mu E_Prior + lambda E_Sparse).
+    """
+    from rigbuild.retarget.common import character_sparse_blendshapes, rigidity_weights
+
+    if method not in METHODS:
+        raise InputError(f"unknown retargeting method '{method}'", fix=f"use one of {', '.join(METHODS)}")
+    rp = retarget_params or RetargetParams()
+    tp = transfer_params or TransferParams()
+    ch = character.to_units("mm") if character.units != "mm" else character
+    s0, ds = character_sparse_blendshapes(ch, vertex_ids)
+    a0 = np.asarray(a0, float)
+    scale = head_scale(a0, s0)
+    Q = prior_matrix(ch.neutral, ch.deltas, ch.faces, scale)
+    transfer = None
+    if method == "parallel":
+        if actor_blendshapes is None:
+            raise InputError("method 'parallel' needs the actor's personalized sparse blendshapes",
+                             fix="pass actor_blendshapes = personalized_rig.deltas[:, marker_vertices] (same shape names)")
+        dp = np.asarray(actor_blendshapes, float)
+        if dp.shape != ds.shape:
+            raise InputError(f"actor blendshapes {dp.shape} do not match the character's sparse shapes {ds.shape}",
+                             fix="subset the personalized rig to the character's shape names and marker vertices")
+        rigidity = rigidity_weights(dp)
+    else:
+        dg = rbf_transfer(s0, ds, a0)
+        rigidity = rigidity_weights(dg)
+        if method == "rbf":
+            dp = dg
+        else:
+            if training is None:
+                raise InputError(f"method '{method}' needs the actor's training (ROM) markers")
+            da = training_displacements(np.asarray(training, float), a0, rigidity)
+            if method == "ribera_activation":
+                tp = TransferParams(**{**tp.__dict__, "match": "activation"})
+            transfer = transfer_blendshapes(s0, ds, a0, da, tp, uv=uv, contact_pairs=contact_pairs,
+                                            segment_starts=segment_starts)
+            dp = transfer.dp
+    return RiberaModel(a0, dp, Q, rigidity, list(ch.shape_names), rp, transfer)

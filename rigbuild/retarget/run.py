@@ -1,0 +1,128 @@
+"""One retargeting job: an actor's training markers + a performance take -> weight curves on a character.
+
+Used by ``scripts/retarget.py`` (one Snakemake job per (session, performance, character, method)), the tests
+and the benchmark. I/O stays in the script; this module takes arrays and rigs.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from rigbuild.errors import InputError
+from rigbuild.retarget.common import (
+    check_frames,
+    interpolate_missing_rows,
+    map_markers_to_vertices,
+    reorder_markers,
+    stabilize,
+)
+from rigbuild.retarget.ribera import RetargetParams, RiberaModel, TransferParams, build_model
+from rigbuild.rig import Rig
+
+
+@dataclass
+class TrainingSet:
+    """The actor's training (ROM) markers: markers (F, M, 3) mm (NaN gaps), names (M,), the first frame of
+    each concatenated sequence, and the actor's neutral markers a0 (M, 3)."""
+
+    markers: np.ndarray
+    names: list[str]
+    segment_starts: np.ndarray
+    neutral: np.ndarray
+
+
+def make_training_set(
+    sequences: Sequence[np.ndarray],
+    names: Sequence[Sequence[str]],
+    neutral_frames: Sequence[int] | None = None,
+    sources: Sequence[str | os.PathLike] | None = None,
+) -> TrainingSet:
+    """Concatenate training sequences (each (F_i, M_i, 3) with its marker names) in the first one's order.
+
+    The actor's neutral ``a0`` is frame ``neutral_frames[0]`` (default 0) of the first sequence; it must have
+    every marker visible.
+    """
+    if not sequences:
+        raise InputError("no training sequence given", fix="list the actor's ROM marker files")
+    order = [str(n) for n in names[0]]
+    mats = []
+    for i, (m, n) in enumerate(zip(sequences, names)):
+        src = None if sources is None else sources[i]
+        mats.append(reorder_markers(m, n, order, what="training sequence", path=src))
+    nf = 0 if neutral_frames is None else int(neutral_frames[0])
+    if not 0 <= nf < mats[0].shape[0]:
+        raise InputError(f"neutral frame {nf} outside the first training sequence ({mats[0].shape[0]} frames)",
+                         path=None if sources is None else sources[0])
+    a0 = mats[0][nf]
+    if not np.all(np.isfinite(a0)):
+        missing = [order[j] for j in np.flatnonzero(~np.all(np.isfinite(a0), axis=1))]
+        raise InputError(f"the neutral frame {nf} has gaps in markers {missing}",
+                         path=None if sources is None else sources[0],
+                         fix="choose a neutral frame where every marker is visible")
+    starts = np.cumsum([0] + [m.shape[0] for m in mats[:-1]]).astype(np.int64)
+    return TrainingSet(np.concatenate(mats), order, starts, a0.copy())
+
+
+@dataclass
+class RetargetResult:
+    """weights (F, K); shape_names; stabilized performance markers (F, M, 3); the model; timings (s); frames
+    that had too few markers (their weights interpolated)."""
+
+    weights: np.ndarray
+    shape_names: list[str]
+    stabilized: np.ndarray
+    model: RiberaModel
+    timings: dict = field(default_factory=dict)
+    empty_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+
+def retarget_performance(
+    training: TrainingSet,
+    performance: np.ndarray,
+    performance_names: Sequence[str],
+    character: Rig,
+    map_names: Sequence[str],
+    map_vertices: np.ndarray,
+    method: str = "ribera",
+    transfer_params: TransferParams | None = None,
+    retarget_params: RetargetParams | None = None,
+    contact_pairs: np.ndarray | None = None,
+    actor_blendshapes: np.ndarray | None = None,
+    allow_empty_frames: bool = True,
+    performance_path: str | os.PathLike | None = None,
+    map_path: str | os.PathLike | None = None,
+) -> RetargetResult:
+    """Retarget one performance onto one character.
+
+    training : :class:`TrainingSet`; performance (F, M', 3) mm with NaN gaps and its marker names;
+    character : rig (mm); map_names / map_vertices : the character's marker map (marker name -> vertex);
+    contact_pairs : (C, 2) indices into ``map_names`` (converted to the training order here).
+    actor_blendshapes : (K, M, 3) in training marker order, for ``method="parallel"``.
+    Frames with fewer than 3 visible markers raise unless ``allow_empty_frames`` (weights interpolated).
+    """
+    t0 = time.perf_counter()
+    vids = map_markers_to_vertices(training.names, map_names, map_vertices, character.name, map_path)
+    pairs = None
+    if contact_pairs is not None and len(contact_pairs):
+        pos = {n: i for i, n in enumerate(training.names)}
+        pairs = np.array([[pos[map_names[a]], pos[map_names[b]]] for a, b in contact_pairs
+                          if map_names[a] in pos and map_names[b] in pos], dtype=np.int64).reshape(-1, 2)
+    perf = reorder_markers(performance, performance_names, training.names, what="performance", path=performance_path)
+    ok = check_frames(perf, what="performance", path=performance_path, allow_empty=allow_empty_frames)
+    check_frames(training.markers, what="training sequence", allow_empty=True)
+    model = build_model(character, vids, training.neutral, training.markers, method, transfer_params,
+                        retarget_params, training.segment_starts, actor_blendshapes, contact_pairs=pairs)
+    t1 = time.perf_counter()
+    w = np.zeros((perf.shape[0], model.dp.shape[0]))
+    w[ok] = model.retarget(perf[ok])
+    w = interpolate_missing_rows(w, ok)
+    t2 = time.perf_counter()
+    stable, _, _ = stabilize(perf, training.neutral, model.rigidity)
+    return RetargetResult(w, list(model.shape_names), stable, model,
+                          {"build_s": t1 - t0, "retarget_s": t2 - t1, "frames": int(perf.shape[0])},
+                          np.flatnonzero(~ok))

@@ -1,0 +1,485 @@
+"""Ribera et al. 2017 retargeting: unit tests of every term on analytic cases, solver checks, bad input,
+outputs, and a small synthetic stage test with ground truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from rigbuild.errors import InputError
+from rigbuild.retarget import ribera as rb
+from rigbuild.retarget.common import (
+    check_frames,
+    map_markers_to_vertices,
+    mean_correlation,
+    observable_shapes,
+    per_shape_correlation,
+    read_weight_curves_csv,
+    reorder_markers,
+    stabilize,
+    weight_mae,
+    write_weight_curves_csv,
+    write_weight_curves_json,
+)
+from rigbuild.rig import Rig
+
+
+# ------------------------------------------------------------------------------------ fixtures
+def grid_rig(n: int = 9, spacing: float = 10.0) -> Rig:
+    """A flat n x n grid in the z = 0 plane (mm) with 4 local bump shapes, markers on every other vertex."""
+    x, y = np.meshgrid(np.arange(n) * spacing, np.arange(n) * spacing)
+    V = np.column_stack([x.ravel(), y.ravel(), np.zeros(n * n)])
+    faces = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a, b, c, d = i * n + j, i * n + j + 1, (i + 1) * n + j, (i + 1) * n + j + 1
+            faces += [[a, b, d], [a, d, c]]
+    centres = [(20, 20), (60, 20), (20, 60), (60, 60)]
+    deltas = np.zeros((4, n * n, 3))
+    for k, (cx, cy) in enumerate(centres):
+        r2 = (V[:, 0] - cx) ** 2 + (V[:, 1] - cy) ** 2
+        inside = r2 <= 15.0**2
+        deltas[k, inside, k % 2] = 5.0  # uniform in-plane displacement on a disc: soft mask 1 on the support
+    mk = np.array([i * n + j for i in range(0, n, 2) for j in range(0, n, 2)])
+    return Rig(V, deltas, [f"s{k}" for k in range(4)], np.array(faces), name="grid",
+               marker_names=[f"m{i}" for i in range(mk.size)], marker_vertices=mk)
+
+
+# ------------------------------------------------------------------------------ section 4.1 terms
+def test_correlations_exact_and_with_gaps():
+    ds = np.zeros((2, 3, 3))
+    ds[0, :, 0] = 1.0
+    ds[1, :, 1] = 1.0
+    da = np.stack([ds[0] * 2, -ds[0], ds[1] * 0.5, ds[0] + ds[1]])
+    c = rb.correlations(da, ds)
+    np.testing.assert_allclose(c, [[1, -1, 0, 1 / np.sqrt(2)], [0, 0, 1, 1 / np.sqrt(2)]], atol=1e-12)
+    gap = da.copy()
+    gap[0, 2] = np.nan  # uses the visible markers only
+    assert rb.correlations(gap, ds)[0, 0] == pytest.approx(1.0)
+
+
+def test_trust_values_eq6():
+    ds = np.zeros((3, 2, 3))
+    ds[0, 0, 0] = 3.0  # largest displacement -> t = 1
+    ds[1, 0, 0] = 1.0  # same direction as the largest -> maximal row sum -> t = 0
+    ds[2, 1, 1] = 2.0  # uncorrelated -> t = 1
+    np.testing.assert_allclose(rb.trust_values(ds), [1.0, 0.0, 1.0], atol=1e-12)
+
+
+def test_contrast_and_enhancement_eq7_eq8():
+    r = 15.0
+    c = np.array([0.0, 0.3, 0.5, 0.9, 1.0])
+    exact = np.exp(r * c) / (np.exp(r / 2) + np.exp(r * c))
+    np.testing.assert_allclose(rb.contrast(c, r), exact, rtol=1e-12)
+    C = np.array([[-0.2, 0.3, 0.9]])
+    np.testing.assert_allclose(rb.enhance_similarity(C, np.array([0.0])), [[0.0, 0.3, 0.9]])
+    np.testing.assert_allclose(rb.enhance_similarity(C, np.array([1.0])), rb.contrast(np.maximum(C, 0), r))
+    np.testing.assert_allclose(rb.enhance_similarity(C, np.array([0.5])),
+                               0.5 * np.maximum(C, 0) + 0.5 * rb.contrast(np.maximum(C, 0), r))
+
+
+def test_key_expressions_peaks_and_segments():
+    sim = np.zeros((2, 12))
+    sim[0, 3] = 1.0
+    sim[1, 8] = 1.0
+    sim[1, 9] = 0.9
+    np.testing.assert_array_equal(rb.key_expressions(sim), [3, 8])
+    # a segment boundary at 6 stops the filter from leaking across; each segment keeps its own peak
+    sim2 = np.zeros((1, 12))
+    sim2[0, 5] = 1.0
+    sim2[0, 6] = 1.0
+    np.testing.assert_array_equal(rb.key_expressions(sim2, np.array([0, 6])), [5, 6])
+
+
+def test_soft_masks_eq10():
+    ds = np.zeros((2, 3, 3))
+    ds[0, :, 2] = [2.0, 1.0, 0.0]
+    np.testing.assert_allclose(rb.soft_masks(ds), [[1.0, 0.5, 0.0], [0.0, 0.0, 0.0]])
+
+
+def test_cross_expression_laplacian_eq12():
+    C = np.array([[1.0, 0.5, -0.5], [0.5, 1.0, 0.0], [-0.5, 0.0, 1.0]])
+    G = rb.cross_expression_laplacian(C)
+    x = np.array([1.0, 2.0, 4.0])
+    # (Gx)_0 = (0.5 (2 - 1) - 0.5 (4 - 1)) / 1
+    assert (G @ x)[0] == pytest.approx(0.5 * 1 - 0.5 * 3)
+    assert (G @ x)[1] == pytest.approx(0.5 * (1 - 2) / 0.5)
+    assert (G @ x)[2] == pytest.approx(-0.5 * (1 - 4) / 0.5)
+    np.testing.assert_allclose(G @ np.ones(3), 0, atol=1e-15)
+
+
+# ------------------------------------------------------------------------------ section 4.4 terms
+def test_thin_plate_rbf_reproduces_affine_and_interpolates():
+    rng = np.random.default_rng(0)
+    c = rng.normal(size=(12, 3)) * 30
+    A = np.array([[1.1, 0.1, 0.0], [0.0, 0.9, 0.2], [0.05, 0.0, 1.3]])
+    b = np.array([5.0, -3.0, 2.0])
+    f = rb.ThinPlateRBF(c, c @ A.T + b)
+    q = rng.normal(size=(20, 3)) * 30
+    np.testing.assert_allclose(f(q), q @ A.T + b, atol=1e-8)
+    y = rng.normal(size=(12, 3))
+    np.testing.assert_allclose(rb.ThinPlateRBF(c, y)(c), y, atol=1e-8)
+    # RBF transfer of deltas through an affine map = the linear part applied to the deltas
+    ds = rng.normal(size=(2, 12, 3))
+    np.testing.assert_allclose(rb.rbf_transfer(c, ds, c @ A.T + b), ds @ A.T, atol=1e-8)
+
+
+def test_marker_laplacian_cotangent_and_contact_edges():
+    rig = grid_rig()
+    s0 = rig.markers()
+    ds = rig.deltas[:, rig.marker_vertices]
+    tri = rb.marker_triangulation(s0, ds, contact_pairs=np.zeros((0, 2), int))
+    L = rb.marker_laplacian(s0, tri)
+    np.testing.assert_allclose(L @ np.ones(len(s0)), 0, atol=1e-12)
+    # on a planar triangulation the cotangent Laplacian of a linear function vanishes at interior vertices
+    f = 2.0 * s0[:, 0] - 0.5 * s0[:, 1]
+    interior = (s0[:, 0] > 0) & (s0[:, 0] < 80) & (s0[:, 1] > 0) & (s0[:, 1] < 80)
+    np.testing.assert_allclose((L @ f)[interior], 0, atol=1e-9)
+    # automatic contact edges: two close markers that separate in a shape (lips parting)
+    pts = np.array([[0, 0, 0], [0, 2, 0], [-10, 1, 0], [10, 1, 0], [0, 12, 0], [0, -10, 0]], float)
+    dsc = np.zeros((1, 6, 3))
+    dsc[0, 0, 1] = -5.0
+    dsc[0, 1, 1] = 5.0
+    tri2 = rb.marker_triangulation(pts, dsc, uv=pts[:, :2] + np.array([[0, 0], [0, 0], [0, 0], [0, 0], [0, 0], [0, 0]]))
+    pairs = {tuple(p) for p in tri2.edges.tolist()}
+    assert (0, 1) in pairs
+
+
+def test_cholmod_and_kronecker_solvers_agree():
+    rig = grid_rig()
+    s0 = rig.markers()
+    ds = rig.deltas[:, rig.marker_vertices]
+    a0 = s0 * 1.1
+    rng = np.random.default_rng(1)
+    da = np.concatenate([ds * 1.1 * w for w in (0.5, 1.0)]) + rng.normal(scale=0.05, size=(8,) + ds.shape[1:])
+    da[3, 2] = np.nan
+    out = {}
+    for solver in ("kronecker", "cholmod"):
+        out[solver] = rb.transfer_blendshapes(s0, ds, a0, da, rb.TransferParams(solver=solver)).dp
+    np.testing.assert_allclose(out["kronecker"], out["cholmod"], atol=1e-7)
+
+
+# ---------------------------------------------------------------------------- transfer (sec. 4)
+def test_transfer_recovers_pure_training_shapes():
+    """Disjoint uniform shapes, training = each shape alone at weight 1: c = 1 on its own key, 0 elsewhere,
+    masks = 1 on the support, RBF guess exact -> the transfer returns the shapes up to the leak of the
+    contrast function at zero correlation, b(0) = 1 / (1 + e^7.5) = 5.5e-4 (eq. 7)."""
+    rig = grid_rig()
+    s0 = rig.markers()
+    ds = rig.deltas[:, rig.marker_vertices]
+    zero = np.zeros((1,) + ds.shape[1:])
+    da = np.concatenate([np.concatenate([zero, ds[k:k + 1], zero]) for k in range(4)])
+    res = rb.transfer_blendshapes(s0, ds, s0, da, segment_starts=np.arange(0, 12, 3))
+    np.testing.assert_array_equal(res.keys, [1, 4, 7, 10])
+    b0 = 1.0 / (1.0 + np.exp(7.5))
+    np.testing.assert_allclose(res.dp, ds, atol=4 * b0 * 5.0)
+    assert np.abs(res.dp - ds).max() > 1e-7  # the leak is there: the faithful E_Match averages over all keys
+    np.testing.assert_allclose(res.similarity[:, res.keys], np.eye(4) * rb.contrast(1.0) + b0 * (1 - np.eye(4)), atol=1e-9)
+
+
+def test_transfer_aligns_range_of_motion():
+    """The actor moves 1.5x more than the character: RBF keeps 1x, the alignment moves toward 1.5x."""
+    rig = grid_rig()
+    s0 = rig.markers()
+    ds = rig.deltas[:, rig.marker_vertices]
+    zero = np.zeros((1,) + ds.shape[1:])
+    da = np.concatenate([np.concatenate([zero, 1.5 * ds[k:k + 1], zero]) for k in range(4)])
+    res = rb.transfer_blendshapes(s0, ds, s0, da, segment_starts=np.arange(0, 12, 3))
+    scale = (res.dp * ds).sum((1, 2)) / (ds * ds).sum((1, 2))
+    rbf_scale = (res.dg * ds).sum((1, 2)) / (ds * ds).sum((1, 2))
+    np.testing.assert_allclose(rbf_scale, 1.0, atol=1e-9)
+    assert np.all(scale > 1.45) and np.all(scale <= 1.5 + 1e-9)
+
+
+# ---------------------------------------------------------------------------- retargeting (sec. 5)
+def test_prior_zero_for_rigid_translation_positive_for_bump():
+    rig = grid_rig()
+    deltas = np.zeros((2, rig.n_vertices, 3))
+    deltas[0, :, 2] = 3.0  # rigid translation: no bending
+    deltas[1] = rig.deltas[0]
+    Q = rb.prior_matrix(rig.neutral, deltas, rig.faces)
+    assert abs(Q[0, 0]) < 1e-20 and Q[1, 1] > 1e-3
+    assert rb.prior_matrix(rig.neutral, deltas, rig.faces, scale=2.0)[1, 1] == pytest.approx(4 * Q[1, 1])
+
+
+def _random_problem(seed=0, K=6, M=20, F=50):
+    rng = np.random.default_rng(seed)
+    P = rng.normal(size=(K, M, 3))
+    W = rng.uniform(0, 1, size=(F, K)) * (rng.uniform(size=(F, K)) > 0.4)
+    return P, W, np.einsum("fk,kmc->fmc", W, P)
+
+
+def test_retargeter_exact_recovery_with_gaps():
+    P, W, da = _random_problem()
+    da[3, 5] = np.nan
+    da[7, :4] = np.nan
+    rt = rb.RiberaRetargeter(P, np.zeros((6, 6)), rb.RetargetParams(mu=0, lambda_cm=0, bounds=None))
+    np.testing.assert_allclose(rt.solve(da), W, atol=1e-10)
+    np.testing.assert_allclose(rt.solve_frame(da[7]), W[7], atol=1e-10)
+
+
+def test_retargeter_box_qp_matches_reference_and_l1_irls():
+    from scipy.optimize import minimize
+
+    P, W, da = _random_problem(1, F=30)
+    rng = np.random.default_rng(2)
+    da = da + rng.normal(scale=0.3, size=da.shape)
+    Q = np.diag(rng.uniform(0.01, 0.1, size=6))
+    prm = rb.RetargetParams(mu=0.3, lambda_cm=0.05, bounds=(0.0, 1.0))
+    w = rb.RiberaRetargeter(P, Q, prm).solve(da)
+    lam = prm.lambda_mm / 6
+    M = P.shape[1]
+    Pm = P.transpose(1, 2, 0).reshape(-1, 6)
+    for f in range(0, 30, 7):
+        a = da[f].reshape(-1)
+
+        def energy(x):
+            return ((Pm @ x - a) ** 2).sum() / M + prm.mu * x @ Q @ x + lam * np.abs(x).sum()
+
+        ref = minimize(energy, np.full(6, 0.5), bounds=[(0, 1)] * 6, method="L-BFGS-B",
+                       options={"ftol": 1e-15, "gtol": 1e-12}).x
+        assert energy(w[f]) <= energy(ref) + 1e-9
+        np.testing.assert_allclose(w[f], ref, atol=2e-4)
+    # unbounded: IRLS minimizes the same L1 energy
+    prm2 = rb.RetargetParams(mu=0.3, lambda_cm=0.05, bounds=None, irls_iterations=30, irls_eps=1e-8)
+    w2 = rb.RiberaRetargeter(P, Q, prm2).solve(da[:1])[0]
+    a = da[0].reshape(-1)
+
+    def energy2(x):
+        return ((Pm @ x - a) ** 2).sum() / M + prm2.mu * x @ Q @ x + lam * np.abs(x).sum()
+
+    ref2 = minimize(energy2, w2 + 0.01, method="Powell", options={"xtol": 1e-10, "ftol": 1e-14}).x
+    assert energy2(w2) <= energy2(ref2) + 1e-6
+
+
+def test_units_conversion_of_lambda():
+    assert rb.RetargetParams(lambda_cm=0.6).lambda_mm == pytest.approx(60.0)
+    a0 = np.random.default_rng(0).normal(size=(10, 3)) * 50
+    assert rb.head_scale(a0, a0 / 10.0) == pytest.approx(10.0)
+
+
+def test_stabilize_removes_rigid_motion():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    ref = rng.normal(size=(15, 3)) * 40
+    R = Rotation.from_rotvec(rng.normal(size=(5, 3)) * 0.05).as_matrix()
+    t = rng.normal(size=(5, 3)) * 4
+    moved = np.einsum("fij,mj->fmi", R, ref) + t[:, None]
+    moved[2, 4] = np.nan
+    stable, _, _ = stabilize(moved, ref)
+    np.testing.assert_allclose(np.nan_to_num(stable), np.nan_to_num(np.broadcast_to(ref, moved.shape) * (stable == stable)), atol=1e-9)
+
+
+def test_build_model_parallel_and_rbf_on_own_rig():
+    """Character = actor: RBF guesses equal the actor's shapes; weights recovered through head motion."""
+    from scipy.spatial.transform import Rotation
+
+    rig = grid_rig()
+    a0 = rig.markers()
+    rng = np.random.default_rng(4)
+    W = rng.uniform(0, 1, size=(20, 4))
+    X = rig.markers(rig.evaluate(W))
+    R = Rotation.from_rotvec(rng.normal(size=(20, 3)) * 0.02).as_matrix()
+    X = np.einsum("fij,fmj->fmi", R, X) + rng.normal(size=(20, 1, 3))
+    prm = rb.RetargetParams(mu=0.0, lambda_cm=0.0, bounds=(0, 1), refine_rigid=2)
+    for method in ("rbf", "parallel"):
+        m = rb.build_model(rig, rig.marker_vertices, a0, None, method, retarget_params=prm,
+                           actor_blendshapes=rig.deltas[:, rig.marker_vertices])
+        np.testing.assert_allclose(m.retarget(X), W, atol=2e-3)
+
+
+# ---------------------------------------------------------------------------------- common
+def test_metrics_and_observable_shapes():
+    t = np.linspace(0, 1, 50)
+    true = np.column_stack([t, t**2, np.zeros(50)])
+    est = np.column_stack([2 * t + 1, t**2, np.zeros(50)])
+    r = per_shape_correlation(est, true)
+    assert r[0] == pytest.approx(1.0) and r[1] == pytest.approx(1.0) and np.isnan(r[2])
+    assert mean_correlation(est, true, np.array([True, True, False])) == pytest.approx(1.0)
+    assert weight_mae(est, true, np.array([False, True, False])) == pytest.approx(0.0)
+    ds = np.zeros((2, 3, 3))
+    ds[0, 1, 0] = 1.2
+    ds[1, 1, 0] = 0.9
+    np.testing.assert_array_equal(observable_shapes(ds), [True, False])
+
+
+def test_bad_inputs_have_clear_messages():
+    with pytest.raises(InputError, match="no vertex for 2 of 3 markers: b, c"):
+        map_markers_to_vertices(["a", "b", "c"], ["a"], [5], "toon", "toon.json")
+    with pytest.raises(InputError, match="different marker set"):
+        reorder_markers(np.zeros((2, 2, 3)), ["a", "x"], ["a", "b"])
+    X = np.zeros((4, 5, 3))
+    X[2] = np.nan
+    with pytest.raises(InputError, match="1 frame\\(s\\) have fewer than 3 visible markers \\(first: 2\\)"):
+        check_frames(X)
+    np.testing.assert_array_equal(check_frames(X, allow_empty=True), [True, True, False, True])
+    with pytest.raises(InputError, match="all gaps"):
+        check_frames(np.full((3, 5, 3), np.nan), allow_empty=True)
+    with pytest.raises(InputError, match="unknown retargeting method"):
+        rb.build_model(grid_rig(), grid_rig().marker_vertices, grid_rig().markers(), None, "magic")
+    with pytest.raises(InputError, match="needs the actor's training"):
+        rb.build_model(grid_rig(), grid_rig().marker_vertices, grid_rig().markers(), None, "ribera")
+
+
+def test_retarget_performance_gaps_and_empty_frames():
+    from rigbuild.retarget.run import make_training_set, retarget_performance
+
+    rig = grid_rig()
+    names = rig.marker_names
+    zero = np.zeros((1, rig.marker_vertices.size, 3))
+    ds = rig.deltas[:, rig.marker_vertices]
+    train = rig.markers()[None] + np.concatenate([np.concatenate([zero, ds[k:k + 1], zero]) for k in range(4)])
+    ts = make_training_set([train[:6], train[6:]], [names, names])
+    rng = np.random.default_rng(5)
+    W = rng.uniform(0, 1, size=(10, 4))
+    perf = rig.markers(rig.evaluate(W))
+    perf[3, :5] = np.nan  # partial gap: solved from the visible markers
+    perf[6] = np.nan  # empty frame: interpolated
+    prm = rb.RetargetParams(mu=0.0, lambda_cm=0.0, bounds=(0, 1), refine_rigid=3)
+    res = retarget_performance(ts, perf[:, ::-1], names[::-1], rig, names, rig.marker_vertices, "rbf",
+                               retarget_params=prm)
+    np.testing.assert_array_equal(res.empty_frames, [6])
+    ok = np.arange(10) != 6
+    np.testing.assert_allclose(res.weights[ok], W[ok], atol=1e-5)
+    np.testing.assert_allclose(res.weights[6], 0.5 * (res.weights[5] + res.weights[7]), atol=1e-12)
+    with pytest.raises(InputError, match="frame"):
+        retarget_performance(ts, perf, names, rig, names, rig.marker_vertices, "rbf", retarget_params=prm,
+                             allow_empty_frames=False)
+
+
+def test_weight_curve_writers_roundtrip(tmp_path):
+    W = np.array([[0.0, 0.25], [0.5, 1.0], [0.125, 0.75]])
+    write_weight_curves_csv(tmp_path / "w.csv", W, ["jawOpen", "eyeBlink_L"], 30.0)
+    w, names, t = read_weight_curves_csv(tmp_path / "w.csv")
+    np.testing.assert_allclose(w, W)
+    assert names == ["jawOpen", "eyeBlink_L"]
+    np.testing.assert_allclose(t, [0, 1 / 30, 2 / 30], atol=1e-6)
+    write_weight_curves_json(tmp_path / "w.json", W, names, 30.0, meta={"method": "ribera"})
+    doc = json.loads((tmp_path / "w.json").read_text())
+    assert doc["weights"]["eyeBlink_L"] == [0.25, 1.0, 0.75] and doc["n_frames"] == 3
+
+
+def test_gltf_animation_roundtrip(tmp_path):
+    from rigbuild.io.gltf_anim import gltf_animation_document, read_gltf_animation_weights, write_gltf_animation
+
+    rig = grid_rig()
+    W = np.random.default_rng(0).uniform(size=(7, 4)).astype(np.float32)
+    write_gltf_animation(tmp_path / "a.gltf", rig, W, 24.0)
+    t, w, names = read_gltf_animation_weights(tmp_path / "a.gltf")
+    np.testing.assert_allclose(w, W)
+    np.testing.assert_allclose(t, np.arange(7) / 24.0, atol=1e-6)
+    assert names == rig.shape_names
+    doc = gltf_animation_document(rig, W, 24.0)
+    acc = doc["accessors"][doc["meshes"][0]["primitives"][0]["targets"][0]["POSITION"]]
+    assert acc["sparse"]["count"] == int((np.abs(rig.deltas[0]).max(1) > 0).sum())
+    assert acc["max"][0] == pytest.approx(0.005)  # 5 mm in metres
+
+
+def test_maya_ascii_locator_reader(tmp_path):
+    from rigbuild.io.maya_ascii import read_maya_locator_animation
+
+    ma = tmp_path / "take.ma"
+    ma.write_text(
+        '//Maya ASCII 2017 scene\ncurrentUnit -l centimeter -a degree -t film;\n'
+        'createNode transform -n "Grp";\n\tsetAttr ".t" -type "double3" 1 0 0 ;\n'
+        'createNode transform -n "A" -p "Grp";\ncreateNode transform -n "Other";\n'
+        + "".join(f'createNode animCurveTL -n "A_translate{ax}";\n\tsetAttr -s 3 ".ktv[0:2]"  0 {v} 0.4 {v + 1}\n\t\t 0.8 {v + 2};\n'
+                  for ax, v in (("X", 0), ("Y", 10), ("Z", 20)))
+        + 'connectAttr "A_translateX.o" "A.tx";\nconnectAttr "A_translateY.o" "A.ty";\nconnectAttr "A_translateZ.o" "A.tz";\n')
+    take = read_maya_locator_animation(ma, group="Grp")
+    assert take.names == ["A"] and take.fps == pytest.approx(60.0)
+    np.testing.assert_allclose(take.markers[:, 0], [[10, 100, 200], [20, 110, 210], [30, 120, 220]])
+    with pytest.raises(InputError, match="no transforms"):
+        read_maya_locator_animation(ma, group="Nope")
+    bad = tmp_path / "bad.ma"
+    bad.write_text("hello")
+    with pytest.raises(InputError, match="not a Maya ASCII"):
+        read_maya_locator_animation(bad)
+
+
+# ---------------------------------------------------------------------------- synthetic stage test
+@pytest.mark.slow
+def test_stage_ict_actor_own_rig_and_template(ict_rig, ict_folder):
+    """Realistic tier: synthetic ICT actor, ICT marker set; own-rig MAE and template correlation bounds."""
+    from rigbuild.eval.retarget import retarget_metrics, synthetic_retarget_scene
+    from rigbuild.synth.markers import load_marker_set
+
+    names, vids = load_marker_set("ict")
+    template = ict_rig.with_markers(names, vids)
+    sc = synthetic_retarget_scene(template, seed=1, identity_folder=ict_folder)  # the benchmark scene
+    actor = sc["actor"]
+    sparse = actor.deltas[:, actor.marker_vertices]
+    prm = rb.RetargetParams(bounds=(0, 1), lambda_cm=0.006)
+    out = {}
+    for cname, ch in (("actor", actor), ("template", template)):
+        for method in ("rbf", "ribera"):
+            m = rb.build_model(ch, actor.marker_vertices, sc["neutral"], sc["training"], method,
+                               retarget_params=prm, segment_starts=sc["segment_starts"])
+            out[cname, method] = retarget_metrics(m.retarget(sc["performance"]), m.shape_names, sc["weights"],
+                                                  actor.shape_names, sparse)
+    assert out["actor", "rbf"]["weight_mae"] <= 0.05
+    assert out["template", "rbf"]["mean_correlation"] >= 0.8
+    # the faithful transfer is measured, not assumed good: its shrinkage shows as larger weights
+    assert out["actor", "ribera"]["weight_mae"] > out["actor", "rbf"]["weight_mae"]
+
+
+class _Named(list):
+    """A list with attribute access, like Snakemake's input/output/params objects."""
+
+    def __init__(self, **kw):
+        super().__init__(kw.values())
+        self.__dict__.update(kw)
+        self._keys = list(kw)
+
+    def keys(self):
+        return self._keys
+
+    def get(self, k, default=None):
+        return self.__dict__.get(k, default)
+
+
+def test_entry_points_write_outputs_and_metrics(tmp_path):
+    import runpy
+    import types
+
+    from rigbuild.io.markers import write_markers_npz
+    from rigbuild.io.rigs import write_rig_npz
+
+    rig = grid_rig()
+    names = rig.marker_names
+    ds = rig.deltas[:, rig.marker_vertices]
+    zero = np.zeros((1,) + ds.shape[1:])
+    train = rig.markers()[None] + np.concatenate([np.concatenate([zero, ds[k:k + 1], zero]) for k in range(4)])
+    W = np.random.default_rng(0).uniform(0, 1, size=(12, 4))
+    write_markers_npz(tmp_path / "train.npz", train, names, 30.0)
+    write_markers_npz(tmp_path / "perf.npz", rig.markers(rig.evaluate(W)), names, 30.0)
+    write_rig_npz(tmp_path / "char.npz", rig)
+    np.savez(tmp_path / "truth.npz", weights=W, shape_names=np.array(rig.shape_names))
+    write_rig_npz(tmp_path / "actor.npz", rig)
+    out = {k: str(tmp_path / "out" / f) for k, f in (("weights", "weights.csv"), ("weights_json", "weights.json"),
+                                                      ("gltf", "animation.gltf"), ("preview", "preview.png"),
+                                                      ("metrics", "retarget_metrics.json"))}
+    sm = types.SimpleNamespace(
+        input=_Named(performance=str(tmp_path / "perf.npz"), training=[str(tmp_path / "train.npz")],
+                     rig=str(tmp_path / "char.npz")),
+        output=_Named(**out),
+        params=_Named(ribera={"mu": 0.0, "lambda_cm": 0.0, "preview_frames": 2}, method="rbf", character="grid",
+                      performance="perf00", neutral_frames=[0], metrics_path=str(tmp_path / "metrics.json")),
+        log=[str(tmp_path / "log.txt")], rule="retarget_ribera")
+    runpy.run_path("scripts/retarget.py", init_globals={"snakemake": sm})
+    w, shape_names, _ = read_weight_curves_csv(out["weights"])
+    np.testing.assert_allclose(w, W, atol=1e-3)
+    ev = types.SimpleNamespace(
+        input=_Named(weights=out["weights"], truth=str(tmp_path / "truth.npz"), actor_rig=str(tmp_path / "actor.npz")),
+        output=_Named(metrics=str(tmp_path / "out" / "eval.json")),
+        params=_Named(method="rbf", character="grid", metrics_path=str(tmp_path / "metrics.json")),
+        log=[str(tmp_path / "log_eval.txt")], rule="retarget_ribera_eval")
+    runpy.run_path("scripts/retarget_eval.py", init_globals={"snakemake": ev})
+    metrics = json.loads((tmp_path / "metrics.json").read_text())["retarget"]
+    assert metrics["rbf_baseline.grid.weight_mae"] < 1e-3
+    assert metrics["rbf_baseline.grid.mean_correlation"] > 0.999
+    assert metrics["rbf_baseline.grid.n_frames"] == 12
+    assert (tmp_path / "out" / "preview.png").stat().st_size > 1000
