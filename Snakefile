@@ -12,6 +12,7 @@ include: "rules/common.smk"
 include: "rules/synth.smk"
 include: "rules/calibrate.smk"
 include: "rules/characters.smk"
+include: "rules/retarget.smk"
 include: "rules/retarget_seol.smk"
 include: "rules/report.smk"
 

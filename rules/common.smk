@@ -112,6 +112,11 @@ def rom_images(session, sequence):
     return [str(spec.rom_image(sequence, cam, f)) for f in seq.frames for cam in spec.cameras]
 
 
+def ground_truth_file(session, relpath):
+    """A synthetic session's ground-truth file (for rigbuild.eval rules only; stages never read it)."""
+    return str(session_dir(session) / "ground_truth" / relpath)
+
+
 def performance_file(session, performance):
     return str(session_spec(session).performance_path(performance))
 
@@ -124,10 +129,18 @@ def performances(session):
     return [p.name for p in session_spec(session).performances]
 
 
+#: retargeting methods run per (performance, character): Ribera 2017 as written, its activation-aware
+#: E_Match option, the RBF-transfer baseline, and Seol 2012 spacetime cloning
+RETARGET_METHODS = ["ribera", "ribera_activation", "rbf", "seol"]
+
+
 def stage_targets(session):
     """Every stage output of a session (the report depends on them all)."""
     targets = [results(session, "calib", "cameras.json")]
     for perf in performances(session):
         for character in CHARACTERS:
-            targets.append(results(session, "retarget", "seol", perf, character, "weights.csv"))
+            for method in RETARGET_METHODS:
+                targets.append(results(session, "retarget", method, perf, character, "weights.csv"))
+                if is_synthetic(session):
+                    targets.append(results(session, "retarget", method, perf, character, "eval_metrics.json"))
     return targets

@@ -9,10 +9,6 @@
 RIBERA_METHODS = ["ribera", "ribera_activation", "rbf"]
 
 
-def _ribera_performance(wc):
-    return str(session_spec(wc.session).performance_path(wc.performance))
-
-
 def _ribera_training(wc):
     return [f"results/{wc.session}/track/{seq.name}/markers.npz" for seq in session_spec(wc.session).rom]
 
@@ -26,7 +22,7 @@ rule retarget_ribera:
     """Transfer the character's blendshapes to the actor's range of motion (sec. 4), then retarget the
     performance with E_Fit + mu E_Prior + lambda E_Sparse (sec. 5)."""
     input:
-        performance=_ribera_performance,
+        performance=lambda wc: performance_file(wc.session, wc.performance),
         training=_ribera_training,
         rig="results/{session}/characters/{character}.npz",
     output:
@@ -59,12 +55,12 @@ rule retarget_ribera:
         "../scripts/retarget.py"
 
 
-rule retarget_ribera_eval:
-    """Score a synthetic session's retargeted curves against the ground-truth weights."""
+rule retarget_eval:
+    """Score a synthetic session's retargeted curves (any method) against the ground-truth weights."""
     input:
         weights="results/{session}/retarget/{method}/{performance}/{character}/weights.csv",
-        truth=lambda wc: f"{session_dir(wc.session)}/ground_truth/performances/{wc.performance}.npz",
-        actor_rig=lambda wc: f"{session_dir(wc.session)}/ground_truth/actor_rig.npz",
+        truth=lambda wc: ground_truth_file(wc.session, f"performances/{wc.performance}.npz"),
+        actor_rig=lambda wc: ground_truth_file(wc.session, "actor_rig.npz"),
     output:
         metrics="results/{session}/retarget/{method}/{performance}/{character}/eval_metrics.json",
     params:
@@ -77,7 +73,7 @@ rule retarget_ribera_eval:
     resources:
         mem_mb=1000,
     wildcard_constraints:
-        method="|".join(RIBERA_METHODS),
+        method="|".join(RIBERA_METHODS + ["seol"]),
         character="|".join(CHARACTERS) or "(?!)",
     conda:
         "../environment.yml"

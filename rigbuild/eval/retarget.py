@@ -23,7 +23,7 @@ from rigbuild.retarget.common import (
 
 #: method name -> metric prefix in metrics.json (``retarget.<prefix>.<character>.*``)
 METHOD_KEYS = {"ribera": "ribera", "ribera_activation": "ribera_activation", "rbf": "rbf_baseline",
-               "parallel": "parallel"}
+               "parallel": "parallel", "seol": "seol"}
 
 
 def align_to_truth(weights: np.ndarray, names: Sequence[str], true_weights: np.ndarray,

@@ -32,6 +32,9 @@ SYNTH_DEFAULTS: dict[str, Any] = {
     "distortion_scale": 1.0,
     "noise_sigma": 1.5,
     "paint_markers": True,
+    # MSAA doubles the render cost; measured: ChArUco corner RMS identical with and without it
+    # (0.089 px at 1280x960) and face renders differ by 48.8 dB PSNR.
+    "msaa": False,
     "calib_poses": 20,
     "board": {"type": "charuco", "squares_x": 7, "squares_y": 5, "square_size_mm": 24.0,
               "marker_size_mm": 18.0, "dictionary": "DICT_5X5_100"},
@@ -87,6 +90,15 @@ def planned_files(name: str, synthetic: dict | None) -> list[str]:
         first, last = seq["frames"]
         files += [f"rom/{seq['name']}/{cam}/{f:06d}.png" for f in range(first, last + 1) for cam in plan["cameras"]]
     files += [perf["file"] for perf in plan["performances"]]
+    return files + planned_ground_truth(name, synthetic)
+
+
+def planned_ground_truth(name: str, synthetic: dict | None) -> list[str]:
+    """Ground-truth files (relative to the session folder) the generator writes; only rigbuild.eval reads them."""
+    plan = plan_session(name, synthetic)
+    files = ["ground_truth/cameras.json", "ground_truth/actor_rig.npz", "ground_truth/template_rig.npz"]
+    files += [f"ground_truth/rom/{seq['name']}.npz" for seq in plan["rom"]]
+    files += [f"ground_truth/performances/{perf['name']}.npz" for perf in plan["performances"]]
     return files
 
 
@@ -165,7 +177,7 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
                                       center=face_centre)
     for cam in cameras:
         for n, (Rb, tb) in enumerate(poses):
-            img = render_board(cam, spec.board, Rb, tb, noise_sigma=float(p["noise_sigma"]),
+            img = render_board(cam, spec.board, Rb, tb, noise_sigma=float(p["noise_sigma"]), msaa=bool(p["msaa"]),
                                seed=seed * 1000 + n)
             _write_png(tmp_dir / "calib" / cam.id / f"{n}.png", img)
     say(f"calibration images: {len(cameras)} cameras x {len(poses)} poses")
@@ -192,7 +204,8 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
             dots = verts[i][actor.marker_vertices] if p["paint_markers"] else None
             mesh = TexturedMesh(verts[i], actor.faces, actor.uvs, actor.face_uvs, texture, dot_centers=dots)
             for cam in cameras:
-                res = render_mesh(cam, mesh, noise_sigma=float(p["noise_sigma"]), seed=seed * 7919 + s * 1000 + i)
+                res = render_mesh(cam, mesh, noise_sigma=float(p["noise_sigma"]), msaa=bool(p["msaa"]),
+                                  seed=seed * 7919 + s * 1000 + i)
                 _write_png(spec.rom_image(seq.name, cam.id, frame), res.color)
                 n_images += 1
         save_npz(gt / "rom" / f"{seq.name}.npz", vertices=verts.astype(np.float32), weights=Wseq.astype(np.float32),
