@@ -20,7 +20,7 @@ from rigbuild.io.metrics import merge_metrics
 from rigbuild.io.rigs import read_rig_npz
 from rigbuild.logs import run_logged
 from rigbuild.retarget.common import reorder_markers, write_weight_curves_csv, write_weight_curves_json
-from rigbuild.retarget.seol import retarget_seol, sobolev_beta
+from rigbuild.retarget.seol import retarget_seol, sobolev_beta, sparse_combination_weights
 from rigbuild.retarget.seol_outputs import plot_velocity_error, write_gltf_morph_animation
 
 log = logging.getLogger("rigbuild.retarget.seol")
@@ -36,6 +36,10 @@ PARAMS = {
     "rigid_weights": "rigidity",   # rigidity | uniform
     "head_refine_iterations": 3,
     "sobolev": None,               # {"regions": {regex: beta}, "frames": [..] or null}
+    "gaps": "mask",                # mask (gaps left out of the energy) | interpolate
+    "prior_corner_hz": None,       # prior strength as a corner frequency (Hz); overrides alpha
+    "prior_combinations": 0,       # extra sparse-combination training frames for the PCA prior
+    "prior_combination_density": 0.15,
 }
 
 
@@ -64,7 +68,13 @@ def main(snakemake) -> None:
         beta = sobolev_beta(names, sob.get("regions", {}), X.shape[0] if sob.get("frames") else None, sob.get("frames"))
     rw = None if cfg["rigid_weights"] == "uniform" else cfg["rigid_weights"]
     pins = {int(f): v for f, v in (cfg["pins"] or {}).items()}
+    n_comb = int(cfg["prior_combinations"] or 0)
+    training = (sparse_combination_weights(rig.n_shapes, n_comb, float(cfg["prior_combination_density"]))
+                if n_comb > 0 else None)
+    corner = cfg["prior_corner_hz"]
     res = retarget_seol(X, rig, marker_names=names, source_neutral=neutral, alpha=float(cfg["alpha"]),
+                        gaps=str(cfg["gaps"]), prior_training=training,
+                        prior_corner_hz=None if corner is None else float(corner), fps=float(take.fps),
                         boundary_frames=cfg["boundary_frames"], pins=pins, boundary_values=cfg["boundary_values"],
                         rigid_weights=rw, head_refine_iterations=int(cfg["head_refine_iterations"]), beta=beta,
                         alpha_perframe=float(cfg["alpha_perframe"]), weight_range=tuple(cfg["weight_range"]))
@@ -79,7 +89,7 @@ def main(snakemake) -> None:
     plot_velocity_error(out.plot, res.velocity_error, fps, title=f"{snakemake.params.performance} -> {rig.name}")
     res.system.save(out.system)
     char = snakemake.params.character
-    values = {"seconds": seconds, "n_frames": int(X.shape[0]), "n_markers": len(names)}
+    values = {"seconds": seconds, "n_frames": int(X.shape[0]), "n_markers": len(names), "alpha": res.alpha}
     per_method = {}
     for method, curve in res.velocity_error.items():
         W = res.weights if method == "spacetime" else res.baselines[method]

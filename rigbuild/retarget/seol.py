@@ -14,6 +14,9 @@ Every part of the paper, in marker space:
 - sec. 7 / fig. 11 the per-frame baselines (no constraint, weights in [-0.5, 1.5], PCA prior) and the
   velocity error: :func:`solve_perframe_unconstrained`, :func:`solve_perframe_range`,
   :func:`solve_perframe_prior`, :func:`velocity_error_per_frame`;
+- prior strength as a corner frequency (:func:`alpha_from_corner_hz`) and a combination training set
+  for the prior (:func:`sparse_combination_weights`); marker gaps left out of the energy
+  (``visibility`` of :class:`SeolSystem`, ``gaps="mask"`` of :func:`retarget_seol`);
 - sec. 7.1 the Sobolev variant ``+ sum_t (B w_t - s_t)^T diag(beta_t) (B w_t - s_t)``, beta per marker
   (region) and optionally only at chosen frames: ``beta`` of :class:`SeolSystem`, :func:`sobolev_beta`.
 
@@ -106,9 +109,10 @@ def refine_head_motion(
     ``x_fm ~ R_f exp([omega_f]) (y_m + B_m w_f + tau_f) + t_f`` in (omega, tau, w) and solves all frames
     with one batched weighted least squares (6 + K unknowns per frame); 2-3 iterations converge.
 
-    markers : (F, M, 3) with gaps filled; neutral : (M, 3); B : (3M, K) marker blendshapes of the
-    (scale-matched) target; R, t : initial head motion; rigid_weights : (M,) per-marker weights.
-    Returns stabilized (F, M, 3), R (F, 3, 3), t (F, 3).
+    markers : (F, M, 3), NaN at gaps (a frame with gaps is solved on its seen markers only);
+    neutral : (M, 3); B : (3M, K) marker blendshapes of the (scale-matched) target; R, t : initial
+    head motion; rigid_weights : (M,) per-marker weights.
+    Returns stabilized (F, M, 3) (NaN kept at gaps), R (F, 3, 3), t (F, 3).
     """
     from scipy.spatial.transform import Rotation
 
@@ -127,11 +131,17 @@ def refine_head_motion(
     J[:, :, 6:] = B.reshape(M, 3, K)
     Jw = J.reshape(3 * M, -1) * sw[:, None]
     pinv = np.linalg.pinv(Jw)
+    vis = np.all(np.isfinite(X), axis=2)
+    gappy = np.flatnonzero(~vis.all(axis=1))
+    vis3 = np.repeat(vis, 3, axis=1)
     R = np.array(R, dtype=np.float64, copy=True)
     t = np.array(t, dtype=np.float64, copy=True)
     for _ in range(int(iterations)):
         stab = np.einsum("fji,fmj->fmi", R, X - t[:, None, :])
-        sol = ((stab - Y[None]).reshape(F, -1) * sw) @ pinv.T
+        res = np.where(vis3, (stab - Y[None]).reshape(F, -1), 0.0) * sw
+        sol = res @ pinv.T
+        for f in gappy:
+            sol[f] = np.linalg.lstsq(Jw[vis3[f]], res[f, vis3[f]], rcond=None)[0]
         Rd = Rotation.from_rotvec(sol[:, :3]).as_matrix()
         t = t + np.einsum("fij,fj->fi", R, sol[:, 3:6])
         R = R @ Rd
@@ -384,6 +394,26 @@ def _solve_kronecker(Ldiag: np.ndarray, Loff: np.ndarray, G: np.ndarray, Pc: np.
     return y.reshape(K, nf).T @ U.T
 
 
+def _solve_pinned_block_tridiagonal(A: np.ndarray, U: np.ndarray, rhs: np.ndarray, mask: np.ndarray,
+                                    vals: np.ndarray) -> np.ndarray:
+    """Solve the block tridiagonal system (diag ``A`` (n, K, K), upper ``U`` (n-1, K, K), ``rhs``
+    (n, K)) with the variables where ``mask`` (n, K) is True fixed to ``vals``: their known values move
+    to the right-hand side and their rows become identity rows. Returns (n, K)."""
+    n = A.shape[0]
+    r = rhs - np.einsum("tkl,tl->tk", A, vals)
+    if n > 1:
+        r[:-1] -= np.einsum("tkl,tl->tk", U, vals[1:])
+        r[1:] -= np.einsum("tlk,tl->tk", U, vals[:-1])
+    keep = 1.0 - mask.astype(np.float64)
+    A = A * keep[:, :, None] * keep[:, None, :]
+    ti, ki = np.nonzero(mask)
+    A[ti, ki, ki] = 1.0
+    if n > 1:
+        U = U * keep[:-1, :, None] * keep[1:, None, :]
+    r = np.where(mask, vals, r)
+    return solve_block_tridiagonal(A, U, r)
+
+
 def _frame_indices(frames: Sequence[int], n_frames: int, what: str) -> np.ndarray:
     out = []
     for f in frames:
@@ -411,6 +441,11 @@ class SeolSystem:
         that shapes the markers do not see stay determined; 1e-6 leaves the solution unchanged in
         practice.
     shape_names : K names; marker_names : M names.
+    visibility : None (every marker seen in every frame) or (F, M) bool, False where a marker is a
+        gap. Gaps are left out of the energy instead of being invented: a velocity term of marker m
+        between frames t-1 and t counts only when m is seen in both, a Sobolev term only when m is
+        seen at t (entries of ``S`` at gaps are ignored and may be NaN). The system then has
+        time-varying blocks ``G_t = B_vis(t)^T B_vis(t)`` (still block tridiagonal, O(frames)).
     """
 
     B: np.ndarray
@@ -422,14 +457,26 @@ class SeolSystem:
     ridge: float = 1e-6
     shape_names: list[str] = field(default_factory=list)
     marker_names: list[str] = field(default_factory=list)
+    visibility: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.B = np.asarray(self.B, dtype=np.float64)
         self.S = np.asarray(self.S, dtype=np.float64)
         if self.B.ndim != 2 or self.S.ndim != 2 or self.S.shape[1] != self.B.shape[0]:
             raise InputError(f"SeolSystem: B {self.B.shape} and S {self.S.shape} do not match (need (3M,K), (F,3M))")
+        if self.visibility is not None:
+            vis = np.asarray(self.visibility, dtype=bool)
+            if vis.shape != (self.S.shape[0], self.B.shape[0] // 3):
+                raise InputError(f"SeolSystem: visibility must be ({self.S.shape[0]}, {self.B.shape[0] // 3}), "
+                                 f"got {vis.shape}")
+            vis3 = np.repeat(vis, 3, axis=1)
+            if not np.all(np.isfinite(self.S[vis3])):
+                raise InputError("SeolSystem: the source displacements contain NaN at visible markers")
+            self.S = np.where(vis3, self.S, 0.0)
+            self.visibility = None if vis.all() else vis
         if not np.all(np.isfinite(self.S)):
-            raise InputError("SeolSystem: the source displacements contain NaN (fill the marker gaps first)")
+            raise InputError("SeolSystem: the source displacements contain NaN (fill the marker gaps first, "
+                             "or pass visibility)")
         if self.beta is not None:
             self.beta = np.asarray(self.beta, dtype=np.float64)
             M = self.B.shape[0] // 3
@@ -471,6 +518,11 @@ class SeolSystem:
         b3 = self._beta3(frames)
         if b3 is None:
             return base, rhs, True
+        if self.visibility is not None:
+            b3 = b3 * np.repeat(self.visibility[frames], 3, axis=1)
+            rhs += (b3 * self.S[frames]) @ self.B
+            Q = np.einsum("ik,ti,il->tkl", self.B, b3, self.B, optimize=True)
+            return base[None] + Q, rhs, False
         rhs += (b3 * self.S[frames]) @ self.B
         if self.beta.ndim == 1:
             return base + self.B.T @ (b3[0][:, None] * self.B), rhs, True
@@ -493,6 +545,18 @@ class SeolSystem:
             raise InputError(f"pins must be ({n}, {K}), got {mask.shape}")
         frames = np.arange(start, stop)
         G = self._G_reg
+        Pc, rpos, constant = self._position_terms(frames)
+        if self.visibility is not None:
+            Gp, dSB = self._pair_terms(frames)
+            rv = np.zeros((n, K))
+            if n > 1:
+                rv[1:] += dSB
+                rv[:-1] -= dSB
+            A = (Pc if not constant else np.broadcast_to(Pc, (n, K, K))).copy()
+            if n > 1:
+                A[1:] += Gp
+                A[:-1] += Gp
+            return _solve_pinned_block_tridiagonal(A, -Gp, rv + rpos, mask, vals)
         # movement rhs: (L SB)_t = B^T (v_t - v_{t+1}) with v_t = s_t - s_{t-1} inside the window
         SB = self._SB[start:stop]
         rv = np.zeros((n, K))
@@ -500,7 +564,6 @@ class SeolSystem:
             dSB = np.diff(SB, axis=0)  # B^T v_t for t = 1..n-1
             rv[1:] += dSB
             rv[:-1] -= dSB
-        Pc, rpos, constant = self._position_terms(frames)
         rhs = rv + rpos
         full = mask.all(axis=1)
         none = ~mask.any(axis=1)
@@ -529,21 +592,24 @@ class SeolSystem:
         deg[-1] -= 1.0
         A = deg[:, None, None] * G[None] + (Pc[None] if constant else Pc)
         U = np.broadcast_to(-G, (max(n - 1, 0), K, K)).copy()
-        r = rhs.copy()
-        # r_t -= A_t[:, pinned] v + U_{t-1}^T ... contributions of known values
-        r -= np.einsum("tkl,tl->tk", A, vals)
-        if n > 1:
-            r[:-1] -= np.einsum("tkl,tl->tk", U, vals[1:])
-            r[1:] -= np.einsum("tlk,tl->tk", U, vals[:-1])
-        m = mask.astype(np.float64)
-        keep = 1.0 - m
-        A = A * keep[:, :, None] * keep[:, None, :]
-        ti, ki = np.nonzero(mask)
-        A[ti, ki, ki] = 1.0
-        if n > 1:
-            U = U * keep[:-1, :, None] * keep[1:, None, :]
-        r = np.where(mask, vals, r)
-        return solve_block_tridiagonal(A, U, r)
+        return _solve_pinned_block_tridiagonal(A, U, rhs, mask, vals)
+
+    def _pair_terms(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Velocity blocks with gaps: for consecutive frames (t-1, t) of ``frames``,
+        ``G_t = B^T diag(seen at t-1 and t) B + ridge`` (n-1, K, K) and ``B^T diag(...) (s_t - s_{t-1})``
+        (n-1, K). Only pairs with a gap pay for their own block (``G`` minus the missing rows)."""
+        vis = self.visibility[frames]
+        pair = vis[1:] & vis[:-1]  # (n-1, M)
+        n1 = pair.shape[0]
+        K = self.n_shapes
+        Gp = np.broadcast_to(self._G_reg, (n1, K, K)).copy()
+        B3 = self.B.reshape(-1, 3, K)
+        for t in np.flatnonzero(~pair.all(axis=1)):
+            Bm = B3[~pair[t]].reshape(-1, K)
+            Gp[t] -= Bm.T @ Bm
+        p3 = np.repeat(pair, 3, axis=1)
+        dS = np.where(p3, np.diff(self.S[frames], axis=0), 0.0)
+        return Gp, dS @ self.B
 
     # ------------------------------------------------------------------------- pins helpers
     def pins_for(self, boundary_frames: Sequence[int] = (0, -1),
@@ -584,7 +650,8 @@ class SeolSystem:
                  alpha=np.float64(self.alpha), ridge=np.float64(self.ridge),
                  beta=np.zeros(0) if self.beta is None else self.beta,
                  shape_names=np.asarray(self.shape_names, dtype=str),
-                 marker_names=np.asarray(self.marker_names, dtype=str))
+                 marker_names=np.asarray(self.marker_names, dtype=str),
+                 visibility=np.zeros((0, 0), bool) if self.visibility is None else self.visibility)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "SeolSystem":
@@ -600,7 +667,8 @@ class SeolSystem:
         return cls(B=z["B"], S=z["S"], prior_P=z["prior_P"], prior_p=z["prior_p"], alpha=float(z["alpha"]),
                    beta=beta, ridge=float(z["ridge"]) if "ridge" in z.files else 1e-6,
                    shape_names=[str(s) for s in z["shape_names"]],
-                   marker_names=[str(s) for s in z["marker_names"]] if "marker_names" in z.files else [])
+                   marker_names=[str(s) for s in z["marker_names"]] if "marker_names" in z.files else [],
+                   visibility=z["visibility"] if "visibility" in z.files and z["visibility"].size else None)
 
 
 def shape_index(shape_names: Sequence[str], name: str) -> int:
@@ -613,45 +681,123 @@ def shape_index(shape_names: Sequence[str], name: str) -> int:
 
 
 # -------------------------------------------------------------------- sec. 7 per-frame baselines
-def solve_perframe_unconstrained(B: np.ndarray, S: np.ndarray) -> np.ndarray:
-    """"No Const": ``min ||B w_t - s_t||^2`` per frame (least squares). B (3M, K), S (F, 3M) -> (F, K)."""
-    return np.linalg.lstsq(B, np.asarray(S).T, rcond=None)[0].T
+def _perframe_normal(B: np.ndarray, S: np.ndarray, visibility: np.ndarray | None):
+    """Per-frame normal equations with gaps left out: ``G_t = B_vis^T B_vis`` (F, K, K) or None when
+    every marker is seen (then ``G = B^T B`` for all frames), and ``B_vis^T s_t`` (F, K)."""
+    S = np.asarray(S, dtype=np.float64)
+    if visibility is None or np.all(visibility):
+        return None, S @ B
+    vis3 = np.repeat(np.asarray(visibility, bool), 3, axis=1)
+    rhs = np.where(vis3, S, 0.0) @ B
+    K = B.shape[1]
+    Gt = np.broadcast_to(B.T @ B, (S.shape[0], K, K)).copy()
+    B3 = B.reshape(-1, 3, K)
+    vis = np.asarray(visibility, bool)
+    for f in np.flatnonzero(~vis.all(axis=1)):
+        Bm = B3[~vis[f]].reshape(-1, K)
+        Gt[f] -= Bm.T @ Bm
+    return Gt, rhs
+
+
+def solve_perframe_unconstrained(B: np.ndarray, S: np.ndarray, visibility: np.ndarray | None = None) -> np.ndarray:
+    """"No Const": ``min ||B w_t - s_t||^2`` per frame (least squares over the markers seen at t when
+    ``visibility`` (F, M) is given). B (3M, K), S (F, 3M) -> (F, K)."""
+    Gt, rhs = _perframe_normal(B, S, visibility)
+    if Gt is None:
+        return np.linalg.lstsq(B, np.asarray(S).T, rcond=None)[0].T
+    return np.linalg.solve(Gt, rhs[..., None])[..., 0]
 
 
 def solve_perframe_prior(B: np.ndarray, S: np.ndarray, prior_P: np.ndarray, prior_p: np.ndarray,
-                         alpha: float = DEFAULT_ALPHA_PERFRAME) -> np.ndarray:
+                         alpha: float = DEFAULT_ALPHA_PERFRAME, visibility: np.ndarray | None = None) -> np.ndarray:
     """"Prior PF": ``min ||B w_t - s_t||^2 + alpha E_prior(w_t)`` per frame (closed form). (F, K)."""
-    A = B.T @ B + alpha * prior_P
-    return np.linalg.solve(A, (np.asarray(S) @ B + alpha * prior_p).T).T
+    Gt, rhs = _perframe_normal(B, S, visibility)
+    if Gt is None:
+        A = B.T @ B + alpha * prior_P
+        return np.linalg.solve(A, (rhs + alpha * prior_p).T).T
+    return np.linalg.solve(Gt + alpha * prior_P, (rhs + alpha * prior_p)[..., None])[..., 0]
 
 
 def solve_perframe_range(B: np.ndarray, S: np.ndarray, bounds: tuple[float, float] = DEFAULT_WEIGHT_RANGE,
-                         tol: float = 1e-12) -> np.ndarray:
+                         tol: float = 1e-12, visibility: np.ndarray | None = None) -> np.ndarray:
     """"Range PF": ``min ||B w_t - s_t||^2`` subject to ``lo <= w <= hi`` per frame (Bregler et al. 2002).
 
     Exact bounded-variable least squares (scipy ``lsq_linear``, method ``bvls``) per frame on the
-    reduced K x K problem ``||C^T w - C^-1 B^T s_t||`` with ``B^T B = C C^T`` (same minimizer).
-    B (3M, K), S (F, 3M) -> (F, K).
+    reduced K x K problem ``||C^T w - C^-1 B^T s_t||`` with ``B^T B = C C^T`` (same minimizer; with
+    ``visibility`` the per-frame ``B_vis^T B_vis``). B (3M, K), S (F, 3M) -> (F, K).
     """
     from scipy.optimize import lsq_linear
 
     lo, hi = float(bounds[0]), float(bounds[1])
     K = B.shape[1]
+    Gt, rhs_all = _perframe_normal(B, S, visibility)
     G = B.T @ B
-    C = np.linalg.cholesky(G + 1e-12 * max(np.trace(G) / K, 1e-12) * np.eye(K))
-    rhs = scipy.linalg.solve_triangular(C, (np.asarray(S) @ B).T, lower=True).T  # (F, K)
-    A = C.T
-    return np.array([lsq_linear(A, r, bounds=(lo, hi), method="bvls", tol=tol).x for r in rhs])
+    eps = 1e-12 * max(np.trace(G) / K, 1e-12) * np.eye(K)
+    out = np.empty((rhs_all.shape[0], K))
+    C = np.linalg.cholesky(G + eps)
+    for f, b in enumerate(rhs_all):
+        Cf = C if Gt is None else np.linalg.cholesky(Gt[f] + eps)
+        r = scipy.linalg.solve_triangular(Cf, b, lower=True)
+        out[f] = lsq_linear(Cf.T, r, bounds=(lo, hi), method="bvls", tol=tol).x
+    return out
 
 
 # --------------------------------------------------------------------------- fig. 11 error
-def velocity_error_per_frame(W: np.ndarray, B: np.ndarray, S: np.ndarray) -> np.ndarray:
+def velocity_error_per_frame(W: np.ndarray, B: np.ndarray, S: np.ndarray,
+                             visibility: np.ndarray | None = None) -> np.ndarray:
     """``||B (w_t - w_{t-1}) - (s_t - s_{t-1})||^2`` per frame (F,) mm^2 (frame 0: 0). Its sum is the
-    paper's ``||D (B W)^T - D S^T||_F^2`` (fig. 11 (a)); per-frame curves are fig. 11 (b)."""
-    R = np.diff(np.asarray(W), axis=0) @ B.T - np.diff(np.asarray(S), axis=0)
+    paper's ``||D (B W)^T - D S^T||_F^2`` (fig. 11 (a)); per-frame curves are fig. 11 (b). With
+    ``visibility`` (F, M) only markers seen at both t-1 and t count (gaps have no measured velocity)."""
+    S = np.asarray(S, dtype=np.float64)
+    R = np.diff(np.asarray(W), axis=0) @ B.T - np.diff(S, axis=0)
+    if visibility is not None:
+        vis = np.asarray(visibility, bool)
+        R = np.where(np.repeat(vis[1:] & vis[:-1], 3, axis=1), R, 0.0)
     out = np.zeros(np.asarray(W).shape[0])
     out[1:] = (R * R).sum(1)
     return out
+
+
+# ------------------------------------------------------------------- prior strength and training
+def alpha_from_corner_hz(corner_hz: float, B: np.ndarray, prior_P: np.ndarray, fps: float) -> float:
+    """The prior weight ``alpha`` of eq. (4) for a prior strength given as a corner frequency (Hz).
+
+    In the velocity domain a positional prior acts, per generalized eigendirection ``k`` of
+    ``(P, G = B^T B)`` with eigenvalue ``mu_k``, as the temporal high-pass ``L(w) / (L(w) + alpha mu_k)``
+    (``L(w) = 2 - 2 cos w``, w in radians per frame): motion slower than ``w_k = sqrt(alpha mu_k)`` is
+    pulled to the prior's mean. Taking the mean ratio ``mu = tr(P) / tr(G)`` (per mm^2 of marker
+    motion) and ``w = 2 pi corner_hz / fps`` gives ``alpha = (2 pi corner_hz / fps)^2 tr(G) / tr(P)``.
+    This alpha does not depend on the unit of length (mm vs cm), the number of markers (``tr G``
+    grows with it, ``P`` does not), the number of shapes or training frames, the frame rate, or the
+    length of the take. The paper's ``alpha = 0.01`` was for its own units/markers/fps; on the ICT
+    marker set at 60 fps (``tr(G)/tr(P)`` ~ 9 mm^2) it is a corner of about 0.3 Hz.
+    """
+    trP = float(np.trace(prior_P))
+    if trP <= 0:
+        raise InputError("the prior matrix has no positive curvature (empty training set?)")
+    return float((2 * np.pi * corner_hz / fps) ** 2 * np.trace(B.T @ B) / trP)
+
+
+def corner_hz_from_alpha(alpha: float, B: np.ndarray, prior_P: np.ndarray, fps: float) -> float:
+    """Inverse of :func:`alpha_from_corner_hz`: the mean corner frequency (Hz) of a raw ``alpha``."""
+    return float(fps / (2 * np.pi) * np.sqrt(max(alpha, 0.0) * np.trace(prior_P) / np.trace(B.T @ B)))
+
+
+def sparse_combination_weights(n_shapes: int, n_frames: int = 2000, density: float = 0.15,
+                               seed: int = 0) -> np.ndarray:
+    """(n_frames, K) weight vectors of a synthetic "animation of the target" for the PCA prior (sec. 5
+    allows any target animation as training data; fig. 13 (d) adds expressive poses): every shape is
+    on with probability ``density`` at a weight uniform in [0, 1].
+
+    Why: with the paper's training set (one blendshape per frame, plus the neutral) and a full-rank
+    ``B`` the prior is exactly ``E_prior = (K+1) (|w - c|^2 + (1^T (w - c))^2)``, ``c = 1/(K+1)``: it
+    does not depend on the shapes at all and charges the *sum* of the weights K+1 times more than any
+    single weight (the training poses never combine shapes). Real performances combine many shapes, so
+    that prior pushes the cheapest (small, nearly collinear) shapes negative. Adding combinations
+    removes the sum penalty.
+    """
+    rng = np.random.default_rng(seed)
+    return (rng.random((n_frames, n_shapes)) < density) * rng.random((n_frames, n_shapes))
 
 
 # --------------------------------------------------------------------------- the whole method
@@ -672,6 +818,7 @@ class SeolResult:
     warp: RbfWarp
     baselines: dict[str, np.ndarray] = field(default_factory=dict)
     velocity_error: dict[str, np.ndarray] = field(default_factory=dict)
+    alpha: float = DEFAULT_ALPHA
 
 
 def target_marker_blendshapes(target: Rig, marker_names: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -711,6 +858,10 @@ def retarget_seol(
     alpha_perframe: float = DEFAULT_ALPHA_PERFRAME,
     weight_range: tuple[float, float] = DEFAULT_WEIGHT_RANGE,
     ridge: float = 1e-6,
+    gaps: str = "mask",
+    prior_corner_hz: float | None = None,
+    fps: float | None = None,
+    scale_match: str = "rbf",
 ) -> SeolResult:
     """Retarget a marker performance onto a blendshape target (Seol et al. 2012, all sections).
 
@@ -739,6 +890,16 @@ def retarget_seol(
         PCA training set after the one-shape-per-frame set.
     prior_with_neutral : put the neutral face first in the PCA training "animation" (default).
     baselines : also compute the sec. 7 per-frame baselines and all velocity-error curves.
+    gaps : ``"mask"`` (default): marker gaps are left out of every energy term (velocity terms need
+        the marker at both frames; :class:`SeolSystem` ``visibility``), of the head-motion fits and of
+        the baselines; ``"interpolate"``: gaps are filled by linear interpolation in time first.
+        The paper does not discuss gaps; interpolation invents motion during a gap (a 3-20 frame gap
+        in a speech take loses the syllables it covers).
+    prior_corner_hz, fps : give the prior strength as a corner frequency in Hz instead of a raw
+        ``alpha`` (:func:`alpha_from_corner_hz`; independent of units, marker count and frame rate);
+        overrides ``alpha``; ``fps`` is then required.
+    scale_match : ``"rbf"`` (sec. 3.2, the paper), ``"affine"`` (only the linear part of the RBF) or
+        ``"none"`` (the target's own marker deltas), for diagnosis.
 
     Returns :class:`SeolResult`.
     """
@@ -762,8 +923,18 @@ def retarget_seol(
     if Y.shape != (M, 3) or not np.all(np.isfinite(Y)):
         raise InputError(f"source neutral must be a finite ({M}, 3) array, got {Y.shape}")
     n_star, d_star, warp = scale_proportion_match(n_tgt, d_tgt, Y)
+    if scale_match == "affine":
+        d_star = np.asarray(d_tgt) @ warp.affine[1:]
+    elif scale_match == "none":
+        d_star = np.array(d_tgt, dtype=np.float64)
+    elif scale_match != "rbf":
+        raise InputError(f"scale_match '{scale_match}' unknown", fix="use 'rbf', 'affine' or 'none'")
+    if gaps not in ("mask", "interpolate"):
+        raise InputError(f"gaps '{gaps}' unknown", fix="use 'mask' or 'interpolate'")
     K = d_star.shape[0]
     B = d_star.reshape(K, -1).T
+    if gaps == "interpolate":
+        X = fill_marker_gaps(X)
     if remove_head:
         if isinstance(rigid_weights, str):
             if rigid_weights != "rigidity":
@@ -773,11 +944,16 @@ def retarget_seol(
             rigid_weights = _rigidity(d_star)
         _, R, t = remove_head_motion(X, Y, rigid_weights)
         if head_refine_iterations > 0:
-            _, R, t = refine_head_motion(fill_marker_gaps(X), Y, B, R, t, rigid_weights, head_refine_iterations)
+            _, R, t = refine_head_motion(X, Y, B, R, t, rigid_weights, head_refine_iterations)
         stab = np.einsum("fji,fmj->fmi", R, X - t[:, None, :])
     else:
         stab, R, t = X, np.broadcast_to(np.eye(3), (F, 3, 3)).copy(), np.zeros((F, 3))
-    stab = fill_marker_gaps(stab)
+    vis = np.all(np.isfinite(stab), axis=2)
+    if vis.all():
+        vis = None
+    elif np.any(vis.sum(1) == 0):
+        raise InputError(f"frame {int(np.flatnonzero(vis.sum(1) == 0)[0])} has no visible marker",
+                         fix="trim the frames without markers from the take")
     S = (stab - Y[None]).reshape(F, -1)
     src_pivot = Y.mean(0)
     head_d = head_motion_about_pivot(R, t, src_pivot)
@@ -792,25 +968,32 @@ def retarget_seol(
         train = np.vstack([train, pt @ d_star.reshape(K, -1)])
     prior = build_pca_prior(train)
     P, p = prior.quadratic(B)
+    if prior_corner_hz is not None:
+        if not fps or fps <= 0:
+            raise InputError("prior_corner_hz needs the take's fps", fix="pass fps=<frames per second>")
+        alpha = alpha_from_corner_hz(float(prior_corner_hz), B, P, float(fps))
     names = list(target.shape_names)
     mnames = list(marker_names) if marker_names is not None else list(target.marker_names)
     system = SeolSystem(B=B, S=S, prior_P=P, prior_p=p, alpha=alpha, beta=beta, ridge=ridge,
-                       shape_names=names, marker_names=mnames)
+                        shape_names=names, marker_names=mnames, visibility=vis)
+    S = system.S  # gaps zeroed (ignored through visibility)
     if boundary_values == "neutral":
         W = system.solve_spacetime(boundary_frames, pins)
     elif boundary_values == "perframe":
         fr = _frame_indices(boundary_frames, F, "boundary frames")
-        bpins = {int(f): v for f, v in zip(fr, solve_perframe_range(B, S[fr], weight_range))}
+        bpins = {int(f): v for f, v in zip(fr, solve_perframe_range(
+            B, S[fr], weight_range, visibility=None if vis is None else vis[fr]))}
         W = system.solve_spacetime((), {**bpins, **dict(pins or {})})
     else:
         raise InputError(f"boundary_values '{boundary_values}' unknown", fix="use 'neutral' or 'perframe'")
     result = SeolResult(weights=W, shape_names=names, head_rotation=R, head_translation=head_d,
-                        source_pivot=src_pivot, target_pivot=n_tgt.mean(0), system=system, warp=warp)
-    result.velocity_error["spacetime"] = velocity_error_per_frame(W, B, S)
+                        source_pivot=src_pivot, target_pivot=n_tgt.mean(0), system=system, warp=warp,
+                        alpha=float(alpha))
+    result.velocity_error["spacetime"] = velocity_error_per_frame(W, B, S, vis)
     if baselines:
-        result.baselines["no_constraint"] = solve_perframe_unconstrained(B, S)
-        result.baselines["perframe_range"] = solve_perframe_range(B, S, weight_range)
-        result.baselines["perframe_prior"] = solve_perframe_prior(B, S, P, p, alpha_perframe)
+        result.baselines["no_constraint"] = solve_perframe_unconstrained(B, S, vis)
+        result.baselines["perframe_range"] = solve_perframe_range(B, S, weight_range, visibility=vis)
+        result.baselines["perframe_prior"] = solve_perframe_prior(B, S, P, p, alpha_perframe, visibility=vis)
         for name, Wb in result.baselines.items():
-            result.velocity_error[name] = velocity_error_per_frame(Wb, B, S)
+            result.velocity_error[name] = velocity_error_per_frame(Wb, B, S, vis)
     return result
