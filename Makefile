@@ -10,6 +10,8 @@ STAMP := $(VENV)/.installed
 # Debian packages the stack needs: open3d links libEGL/libGL/libX11/libusb; moderngl's EGL renderer
 # needs Mesa's EGL vendor library and the llvmpipe DRI driver.
 DEB_PACKAGES := libusb-1.0-0 libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libx11-6
+# The test suite also opens the HTML report in headless Chromium (the test skips when it is absent).
+TEST_DEB_PACKAGES := chromium
 CORES ?= 2
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
@@ -21,6 +23,7 @@ demo: setup
 	$(VENV)/bin/snakemake --cores $(CORES)
 
 test: setup
+	@$(MAKE) --no-print-directory system-deps DEB_PACKAGES="$(TEST_DEB_PACKAGES)" || echo "warning: Chromium not installed; the report screenshot test will skip"
 	@set +e; $(PY) -m pytest $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests (exit 5) - treated as failure"; exit 1; fi; exit $$rc
 

@@ -99,6 +99,11 @@ def read_ict_rig(
         face_region=np.arange(*ICT_FACE_VERTICES),
         landmarks=landmarks if landmarks.size == 68 else None,
     )
+    from rigbuild.synth.markers import load_marker_set, marker_set_path
+
+    if marker_set_path("ict").exists():  # the ICT marker set is data shipped with rigbuild
+        names, vids = load_marker_set("ict")
+        rig = rig.with_markers(names, vids)
     return rig.to_units(units)
 
 

@@ -1,0 +1,152 @@
+"""Benchmark of the tracking stage: seconds per frame vs number of cameras (1280x960, ICT head) and the
+Laplacian solver vs mesh size. Prints a table and writes benchmarks/out/track.json.
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_track.py [--cameras 2 4 8] [--size 1280 960]
+
+Frames are rendered from a synthetic ICT actor (GT depth buffers stand in for the reconstruction, so only
+tracking is timed). Issue goal: under 5 s per frame for 8 cameras at 1280x960 on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from rigbuild.io.atomic import write_json  # noqa: E402
+from rigbuild.paths import PROJECT_ROOT  # noqa: E402
+
+
+def _fps(P, n):
+    idx = [int(np.argmax(P[:, 2]))]
+    d = np.linalg.norm(P - P[idx[0]], axis=1)
+    for _ in range(n - 1):
+        i = int(np.argmax(d))
+        idx.append(i)
+        d = np.minimum(d, np.linalg.norm(P - P[i], axis=1))
+    return np.array(idx)
+
+
+def ict_with_markers(n_markers=60):
+    from rigbuild.io.rigs import load_rig, read_ict_rig
+    from rigbuild.paths import ict_dir
+
+    try:
+        rig = load_rig("ict")
+    except Exception:
+        rig = read_ict_rig(ict_dir())
+    if rig.marker_vertices.size < 4:
+        try:
+            from rigbuild.synth.markers import load_marker_set
+
+            names, ids = load_marker_set("ict")
+            rig = rig.with_markers(names, ids)
+        except Exception:
+            pass
+    if rig.marker_vertices.size < 4:  # no marker set shipped: farthest-point dots on the front of the face
+        cand = np.arange(6706)
+        cand = cand[rig.neutral[cand, 2] > rig.neutral[:6706, 2].max() - 60]
+        mk = cand[_fps(rig.neutral[cand], n_markers)]
+        rig = rig.with_markers([f"d{i:02d}" for i in range(mk.size)], mk)
+    return rig
+
+
+def cameras_for(center, n, W, H, f):
+    from rigbuild.camera import Camera, look_at
+
+    cams = []
+    for i, a in enumerate(np.radians(np.linspace(-45, 45, n))):
+        R, t = look_at(center + 500 * np.array([np.sin(a), 0.12 * (i % 2), np.cos(a)]), center, (0, 1, 0))
+        cams.append(Camera(f"cam{i:02d}", W, H, [[f, 0, W / 2 - 0.5], [0, f, H / 2 - 0.5], [0, 0, 1]],
+                           [0.01, 0, 0, 0, 0], R, t))
+    return cams
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--cameras", type=int, nargs="+", default=[2, 4, 8])
+    ap.add_argument("--size", type=int, nargs=2, default=[1280, 960])
+    args = ap.parse_args()
+    from rigbuild.io.rigs import load_rig
+    from rigbuild.paths import ict_dir
+    from rigbuild.render import TexturedMesh, render_mesh, speckle_texture
+    from rigbuild.synth.actor import make_actor_rig
+    from rigbuild.track.laplacian import LaplacianSolver
+    from rigbuild.track.matches import ViewFrame
+    from rigbuild.track.mesh import build_tracking_mesh
+    from rigbuild.track.sequence import TrackParams
+    from rigbuild.track.stage import track_neutral_frame, track_rom_sequence
+
+    W, H = args.size
+    out = {"image_size": [W, H], "cpu_count": os.cpu_count(), "load_avg_start": os.getloadavg(), "cameras": {},
+           "solver": {}}
+    # ---- solver vs mesh size
+    for name, rig in (("procedural", load_rig("procedural")), ("ict", ict_with_markers())):
+        tm = build_tracking_mesh(rig.neutral, rig.faces, rig.face_region)
+        t0 = time.perf_counter()
+        solver = LaplacianSolver(tm.local(rig.neutral), tm.faces)
+        t_pre = time.perf_counter() - t0
+        rng = np.random.default_rng(0)
+        n = 40000
+        tri = rng.integers(0, tm.faces.shape[0], n)
+        bary = rng.dirichlet([1, 1, 1], n)
+        tgt = np.einsum("nk,nkd->nd", bary, solver.rest[tm.faces[tri]]) + 0.1
+        t0 = time.perf_counter()
+        reps = 5
+        for _ in range(reps):
+            solver.solve(tri, bary, tgt, np.ones(n), 2.0, delta=solver.rotated_delta(solver.rest))
+        out["solver"][name] = {"tracked_vertices": tm.n, "precompute_s": t_pre,
+                               "solve_40k_constraints_s": (time.perf_counter() - t0) / reps}
+    # ---- seconds per frame vs cameras
+    template = ict_with_markers()
+    actor, _ = make_actor_rig(template, seed=5, identity_folder=ict_dir())
+    c = actor.neutral[actor.face_vertices].mean(0)
+    f = 2400.0 * W / 1280.0
+    w = np.zeros((2, actor.n_shapes))
+    w[1, actor.shape_index("jawOpen")] = 0.3
+    w[1, actor.shape_index("mouthSmile_L")] = 0.5
+    verts = actor.evaluate(w)
+    verts[1] += [0.5, -0.3, 0.2]
+    tex = speckle_texture(2048, seed=5)
+    all_cams = cameras_for(c, max(args.cameras), W, H, f)
+    t0 = time.perf_counter()
+    views = []
+    for i in range(2):
+        mesh = TexturedMesh(verts[i], actor.faces, actor.uvs, actor.face_uvs, tex,
+                            dot_centers=verts[i][actor.marker_vertices], dot_radius_mm=1.5)
+        views.append([(cam, render_mesh(cam, mesh, noise_sigma=1.5, seed=i)) for cam in all_cams])
+    out["render_s_per_image"] = (time.perf_counter() - t0) / (2 * len(all_cams))
+    for nc in args.cameras:
+        first = (len(all_cams) - nc) // 2  # the central nc cameras of the arc
+        pick = np.arange(first, first + nc)
+        frames = [[ViewFrame(views[i][k][0], views[i][k][1].color, views[i][k][1].depth) for k in pick] for i in range(2)]
+        t0 = time.perf_counter()
+        reg, _ = track_neutral_frame(template, frames[0])
+        t_reg = time.perf_counter() - t0
+        res = {}
+        for levels in (("features",), ("features", "sparse"), ("features", "sparse", "flow")):
+            t0 = time.perf_counter()
+            V, C, mk, stats = track_rom_sequence(template, reg.vertices, frames[0], frames, [0, 1], "bench",
+                                                 TrackParams(levels=levels))
+            dt = time.perf_counter() - t0
+            face = template.face_vertices
+            e = np.linalg.norm(V[1][face] - verts[1][face], axis=1)
+            res["+".join(levels)] = {"seconds_per_frame": dt / 2, "frame1_mean_error_mm": float(e.mean())}
+        out["cameras"][str(nc)] = {"registration_s": t_reg, "levels": res}
+        print(f"{nc} cameras: registration {t_reg:.1f} s; " + "; ".join(
+            f"{k}: {v['seconds_per_frame']:.2f} s/frame, err {v['frame1_mean_error_mm']:.3f} mm" for k, v in res.items()))
+    out["load_avg_end"] = os.getloadavg()
+    print("\nsolver:")
+    for k, v in out["solver"].items():
+        print(f"  {k:10s} {v['tracked_vertices']:6d} vertices  precompute {v['precompute_s']:.3f} s  "
+              f"solve (40k constraints, 3 rhs) {v['solve_40k_constraints_s']:.3f} s")
+    print(f"load average start/end: {out['load_avg_start']} / {out['load_avg_end']} (2-core machine shared)")
+    write_json(PROJECT_ROOT / "benchmarks" / "out" / "track.json", out)
+
+
+if __name__ == "__main__":
+    main()

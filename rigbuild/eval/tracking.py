@@ -1,0 +1,85 @@
+"""Tracking accuracy against ground truth (synthetic sessions only; the tracking stage never calls this).
+
+Two error kinds over the face-region vertices:
+
+- **vertex error** (the acceptance metric): ``|tracked_v(t) - truth_v(t)|`` with the template's vertex
+  correspondence; it includes the neutral registration's tangential error (which vertex of the actor a
+  template vertex lands on).
+- **correspondence-tracking error**: each tracked vertex's registered neutral position is attached to the
+  closest point of the ground-truth neutral surface (triangle + barycentrics); its reference at frame ``t``
+  is that surface point on the ground-truth mesh of frame ``t``. This isolates the tracking (frame to frame
+  and drift) from the registration.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def vertex_errors(tracked: np.ndarray, truth: np.ndarray, vertices: np.ndarray | None = None) -> np.ndarray:
+    """(F, R) per-frame per-vertex distances (mm) between tracked and truth (F, V, 3), on ``vertices`` (R,)."""
+    tracked = np.asarray(tracked, dtype=np.float64)
+    truth = np.asarray(truth, dtype=np.float64)
+    if tracked.shape != truth.shape:
+        raise ValueError(f"tracked {tracked.shape} and truth {truth.shape} differ")
+    if vertices is not None:
+        tracked = tracked[:, vertices]
+        truth = truth[:, vertices]
+    return np.linalg.norm(tracked - truth, axis=2)
+
+
+def surface_anchors(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest points of ``points`` (N, 3) on the mesh (vertices, faces): triangle ids (N,), barycentrics (N, 3)."""
+    import igl
+
+    _, tri, closest = igl.point_mesh_squared_distance(np.asarray(points, float), np.asarray(vertices, float),
+                                                      np.asarray(faces, np.int64))
+    f = np.asarray(faces)[tri]
+    V = np.asarray(vertices, float)
+    bary = igl.barycentric_coordinates(closest, V[f[:, 0]], V[f[:, 1]], V[f[:, 2]])
+    return tri.astype(np.int64), np.asarray(bary, float)
+
+
+def tracking_summary(tracked: np.ndarray, truth: np.ndarray, faces: np.ndarray, face_vertices: np.ndarray,
+                     registered_neutral: np.ndarray | None = None, truth_neutral: np.ndarray | None = None
+                     ) -> dict:
+    """Error summary of one sequence.
+
+    tracked, truth : (F, V, 3) mm; faces (T, 3); face_vertices (R,). With ``registered_neutral`` (V, 3) and
+    ``truth_neutral`` (V, 3) the correspondence-tracking errors are added.
+    Returns dict: mean_error_mm, p95_error_mm, end_error_mm (last frame mean), first_error_mm,
+    per_frame_mean_mm (F,), and corr_* equivalents.
+    """
+    e = vertex_errors(tracked, truth, face_vertices)
+    out = {
+        "mean_error_mm": float(e.mean()),
+        "p95_error_mm": float(np.percentile(e, 95)),
+        "first_error_mm": float(e[0].mean()),
+        "end_error_mm": float(e[-1].mean()),
+        "per_frame_mean_mm": e.mean(1).tolist(),
+        "errors": e,
+    }
+    if registered_neutral is not None and truth_neutral is not None:
+        tri, bary = surface_anchors(np.asarray(registered_neutral)[face_vertices], truth_neutral, faces)
+        f = np.asarray(faces)[tri]
+        ref = np.einsum("nk,fnkd->fnd", bary, np.asarray(truth, float)[:, f])
+        c = np.linalg.norm(np.asarray(tracked, float)[:, face_vertices] - ref, axis=2)
+        out.update({"corr_mean_error_mm": float(c.mean()), "corr_p95_error_mm": float(np.percentile(c, 95)),
+                    "corr_end_error_mm": float(c[-1].mean()), "corr_per_frame_mean_mm": c.mean(1).tolist(),
+                    "corr_errors": c})
+    return out
+
+
+def session_tracking_metrics(summaries: dict[str, dict]) -> dict:
+    """Combine per-sequence summaries into the ``tracking`` metrics: mean_error_mm and p95_error_mm over all
+    frames of all sequences, end_drift_mm = mean over sequences of the last-frame mean error, and corr_*."""
+    if not summaries:
+        return {}
+    allv = np.concatenate([s["errors"].ravel() for s in summaries.values()])
+    out = {"mean_error_mm": float(allv.mean()), "p95_error_mm": float(np.percentile(allv, 95)),
+           "end_drift_mm": float(np.mean([s["end_error_mm"] for s in summaries.values()]))}
+    if all("corr_errors" in s for s in summaries.values()):
+        c = np.concatenate([s["corr_errors"].ravel() for s in summaries.values()])
+        out.update({"corr_mean_error_mm": float(c.mean()), "corr_p95_error_mm": float(np.percentile(c, 95)),
+                    "corr_end_drift_mm": float(np.mean([s["corr_end_error_mm"] for s in summaries.values()]))})
+    return out

@@ -1,0 +1,240 @@
+"""Level 1 (face features): painted-dot detection, multi-view triangulation and lifting with depth maps.
+
+The paper initializes with a 68-point facial landmark predictor; no such model can be obtained here, so
+the coarse level uses painted marker dots (the synthetic sessions paint them at the rig's marker vertices;
+real sessions paint dots on the actor): dark, colourless discs on skin, which are detected as connected
+components of pixels much darker than their neighbourhood and nearly grey (skin and speckle are reddish).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from rigbuild.camera import Camera
+
+
+@dataclass
+class DotParams:
+    """Dot detector thresholds: a pixel is a dot pixel when its brightest channel is below ``darkness``
+    times the local background (max filter over ``background_px``) and its red-minus-blue is below
+    ``chroma`` times the background; components with area in [min_area, max_area] px and fill ratio
+    (area / bounding-box area) >= ``min_fill`` are dots."""
+
+    darkness: float = 0.35
+    chroma: float = 0.12
+    background_px: int = 15
+    blur_sigma: float = 1.0
+    min_area: int = 3
+    max_area: int = 400
+    min_fill: float = 0.35
+
+
+def detect_dots(image_rgb: np.ndarray, params: DotParams | None = None, mask: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Detect painted dots in an RGB image (H, W, 3) uint8.
+
+    mask : optional (H, W) bool region to search (e.g. where the face is).
+    Returns centres (N, 2) float64 px (OpenCV pixel centres, darkness-weighted centroids) and areas (N,).
+    """
+    p = params or DotParams()
+    img = np.asarray(image_rgb, dtype=np.float32)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError("detect_dots expects an (H, W, 3) RGB image")
+    b = cv2.GaussianBlur(img, (0, 0), p.blur_sigma) if p.blur_sigma > 0 else img
+    mx = b.max(axis=2)
+    bg = cv2.dilate(mx, np.ones((p.background_px, p.background_px), np.uint8))
+    cand = (mx < p.darkness * bg) & ((b[..., 0] - b[..., 2]) < p.chroma * bg) & (bg > 20)
+    if mask is not None:
+        cand &= mask
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(cand.astype(np.uint8), 8)
+    if n <= 1:
+        return np.zeros((0, 2)), np.zeros(0)
+    area = stats[1:, cv2.CC_STAT_AREA]
+    fill = area / np.maximum(stats[1:, cv2.CC_STAT_WIDTH] * stats[1:, cv2.CC_STAT_HEIGHT], 1)
+    ok = (area >= p.min_area) & (area <= p.max_area) & (fill >= p.min_fill)
+    # darkness-weighted centroids
+    wgt = np.clip(bg - mx, 0, None) * (lab > 0)
+    ys, xs = np.nonzero(lab)
+    labs = lab[ys, xs]
+    ww = wgt[ys, xs]
+    sw = np.bincount(labs, weights=ww, minlength=n)
+    cx = np.bincount(labs, weights=ww * xs, minlength=n) / np.maximum(sw, 1e-9)
+    cy = np.bincount(labs, weights=ww * ys, minlength=n) / np.maximum(sw, 1e-9)
+    keep = np.flatnonzero(ok) + 1
+    return np.stack([cx[keep], cy[keep]], axis=1), area[keep - 1].astype(np.float64)
+
+
+def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear sample of a (H, W) float image at pixels uv (N, 2); NaN outside or next to NaN."""
+    img = np.asarray(image, dtype=np.float64)
+    H, W = img.shape
+    u = np.asarray(uv, dtype=np.float64)[:, 0]
+    v = np.asarray(uv, dtype=np.float64)[:, 1]
+    out = np.full(u.shape, np.nan)
+    ok = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (v >= 0) & (u <= W - 1) & (v <= H - 1)
+    u0 = np.minimum(np.floor(u[ok]).astype(np.int64), W - 2)
+    v0 = np.minimum(np.floor(v[ok]).astype(np.int64), H - 2)
+    du, dv = u[ok] - u0, v[ok] - v0
+    out[ok] = ((1 - du) * (1 - dv) * img[v0, u0] + du * (1 - dv) * img[v0, u0 + 1]
+               + (1 - du) * dv * img[v0 + 1, u0] + du * dv * img[v0 + 1, u0 + 1])
+    return out
+
+
+def depth_discontinuity(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Max minus min of the 2x2 depth neighbourhood at uv (N,) (mm); NaN where any is NaN/outside."""
+    d = np.asarray(depth, dtype=np.float64)
+    H, W = d.shape
+    u = np.asarray(uv, dtype=np.float64)[:, 0]
+    v = np.asarray(uv, dtype=np.float64)[:, 1]
+    out = np.full(u.shape, np.nan)
+    ok = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (v >= 0) & (u <= W - 1) & (v <= H - 1)
+    u0 = np.minimum(np.floor(u[ok]).astype(np.int64), W - 2)
+    v0 = np.minimum(np.floor(v[ok]).astype(np.int64), H - 2)
+    n = np.stack([d[v0, u0], d[v0, u0 + 1], d[v0 + 1, u0], d[v0 + 1, u0 + 1]], axis=1)
+    out[ok] = n.max(1) - n.min(1)
+    return out
+
+
+def lift(camera: Camera, depth: np.ndarray, uv: np.ndarray, max_step_mm: float = 2.0) -> np.ndarray:
+    """Lift pixels uv (N, 2) to world points (N, 3) mm with a camera-z depth map (H, W) mm (NaN = none).
+
+    Points on a depth discontinuity (2x2 neighbourhood spread > ``max_step_mm``) or without depth are NaN.
+    """
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    z = sample_bilinear(depth, uv)
+    step = depth_discontinuity(depth, uv)
+    z[~(step <= max_step_mm)] = np.nan
+    out = np.full((uv.shape[0], 3), np.nan)
+    ok = np.isfinite(z)
+    if ok.any():
+        xy = camera.undistort_points(uv[ok])
+        Xc = np.hstack([xy, np.ones((xy.shape[0], 1))]) * z[ok, None]
+        out[ok] = (Xc - camera.t) @ camera.R  # R^T (Xc - t)
+    return out
+
+
+def triangulate(cameras: list[Camera], uv: np.ndarray, valid: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares multi-view triangulation of M points seen in C views (midpoint of rays, exact
+    for consistent rays).
+
+    cameras : C cameras; uv : (C, M, 2) px (NaN = not seen); valid : optional (C, M) bool.
+    Returns X (M, 3) mm (NaN where fewer than 2 views), reprojection RMS (M,) px, views used (M,).
+    """
+    uv = np.asarray(uv, dtype=np.float64)
+    C, M, _ = uv.shape
+    ok = np.isfinite(uv).all(axis=2) if valid is None else (np.asarray(valid) & np.isfinite(uv).all(axis=2))
+    A = np.zeros((M, 3, 3))
+    b = np.zeros((M, 3))
+    for c, cam in enumerate(cameras):
+        m = ok[c]
+        if not m.any():
+            continue
+        d = cam.rays(uv[c, m])
+        P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+        A[m] += P
+        b[m] += P @ cam.center
+    n = ok.sum(0)
+    X = np.full((M, 3), np.nan)
+    good = n >= 2
+    if good.any():
+        X[good] = np.linalg.solve(A[good], b[good][:, :, None])[:, :, 0]
+    err = np.zeros((M,))
+    cnt = np.zeros(M)
+    for c, cam in enumerate(cameras):
+        m = ok[c] & good
+        if m.any():
+            e = np.linalg.norm(cam.project(X[m]) - uv[c, m], axis=1)
+            err[m] += e ** 2
+            cnt[m] += 1
+    rms = np.where(cnt > 0, np.sqrt(err / np.maximum(cnt, 1)), np.nan)
+    return X, rms, n
+
+
+def assign_detections(predicted: np.ndarray, detections: np.ndarray, radius_px: float,
+                      ambiguity_ratio: float = 1.5) -> np.ndarray:
+    """Label detections by predicted positions: (M,) index into detections (N, 2) for each prediction (M, 2)
+    (NaN predictions allowed), or -1. One-to-one (Hungarian), gated at ``radius_px``; an assignment is
+    dropped when another detection (or another prediction) is within ``ambiguity_ratio`` times its distance
+    (ambiguous)."""
+    from scipy.optimize import linear_sum_assignment
+
+    M = predicted.shape[0]
+    out = np.full(M, -1, dtype=np.int64)
+    okp = np.isfinite(predicted).all(1)
+    if not okp.any() or detections.shape[0] == 0:
+        return out
+    idx = np.flatnonzero(okp)
+    cost = np.linalg.norm(predicted[idx, None, :] - detections[None], axis=2)
+    r, c = linear_sum_assignment(np.minimum(cost, 10 * radius_px))
+    d1 = cost[r, c]
+    good = d1 <= radius_px
+    if ambiguity_ratio > 1.0:
+        other_det = cost[r].copy()
+        other_det[np.arange(r.size), c] = np.inf
+        other_pred = cost[:, c].copy()
+        other_pred[r, np.arange(r.size)] = np.inf
+        second = np.minimum(other_det.min(1) if other_det.shape[1] else np.inf,
+                            other_pred.min(0) if other_pred.shape[0] else np.inf)
+        good &= second > ambiguity_ratio * np.maximum(d1, 0.5)
+    out[idx[r[good]]] = c[good]
+    return out
+
+
+def cluster_lifted_dots(points_per_view: list[np.ndarray], radius_mm: float = 2.5, min_views: int = 2
+                        ) -> list[list[tuple[int, int]]]:
+    """Group dots lifted to 3-D in several views into physical dots (unlabeled, first frame).
+
+    points_per_view : C arrays (N_c, 3) mm (NaN rows ignored). Greedy clustering: each dot takes, from every
+    other view, the nearest lifted dot within ``radius_mm``. Returns clusters as lists of (view, index) with
+    at least ``min_views`` members.
+    """
+    from scipy.spatial import cKDTree
+
+    trees = [cKDTree(np.nan_to_num(p, nan=1e12)) if p.shape[0] else None for p in points_per_view]
+    used = [np.zeros(p.shape[0], dtype=bool) for p in points_per_view]
+    clusters = []
+    for c, pts in enumerate(points_per_view):
+        for i in range(pts.shape[0]):
+            if used[c][i] or not np.isfinite(pts[i]).all():
+                continue
+            members = [(c, i)]
+            for c2, tree in enumerate(trees):
+                if c2 == c or tree is None:
+                    continue
+                d, j = tree.query(pts[i])
+                if d <= radius_mm and not used[c2][j]:
+                    members.append((c2, int(j)))
+            if len(members) >= min_views:
+                for cc, ii in members:
+                    used[cc][ii] = True
+                clusters.append(members)
+    return clusters
+
+
+def depth_to_image_grid(depth_pinhole: np.ndarray, camera: Camera, K_pinhole: np.ndarray | None = None,
+                        max_step_mm: float = 2.0) -> np.ndarray:
+    """Resample a depth map computed on the undistorted pinhole grid of ``camera`` (same R, t; intrinsics
+    ``K_pinhole``, default ``camera.K``; 0 or NaN = none) onto the camera's distorted image grid, so it is
+    aligned with the images. Returns (H, W) float32 camera z in mm, NaN where none (or across a jump)."""
+    d = np.asarray(depth_pinhole, dtype=np.float32).copy()
+    d[~(d > 0)] = np.nan
+    if not np.any(camera.dist):
+        if K_pinhole is None or np.allclose(K_pinhole, camera.K):
+            return d
+    K = camera.K if K_pinhole is None else np.asarray(K_pinhole, dtype=np.float64)
+    H, W = camera.height, camera.width
+    ys, xs = np.mgrid[0:H, 0:W]
+    uv = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
+    xy = camera.undistort_points(uv)
+    pu = xy[:, 0] * K[0, 0] + xy[:, 1] * K[0, 1] + K[0, 2]
+    pv = xy[:, 1] * K[1, 1] + K[1, 2]
+    pin = np.stack([pu, pv], 1)
+    z = sample_bilinear(np.nan_to_num(d, nan=0.0), pin)
+    step = depth_discontinuity(d, pin)
+    z[~(step <= max_step_mm)] = np.nan
+    z[~(z > 0)] = np.nan
+    return z.reshape(H, W).astype(np.float32)

@@ -1,0 +1,96 @@
+"""Level 3: dense optical flow per view, guided by the motion field rendered from the current mesh.
+
+The target image is warped back by the rendered motion field (so only the residual motion is left),
+DIS optical flow (OpenCV, coarse to fine on a Gaussian pyramid with patch-based inverse search) measures
+the residual from the source image to the warped target, and the total flow is residual + motion field
+at the residually displaced position. A backward flow gives a forward-backward consistency error that
+weights each match. Matches are taken on a regular grid of source pixels inside the rendered mesh.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from rigbuild.track.matches import Matches, Source, ViewFrame, concat, lift_matches
+
+
+@dataclass
+class FlowParams:
+    """grid_px: match spacing (relative to a 1280-px-wide image); preset: DIS preset name (ultrafast,
+    fast, medium); fb_sigma_px: forward-backward error scale of the weights; max_fb_px: rejection;
+    motion_step: motion-field sampling step in px."""
+
+    grid_px: float = 8.0
+    preset: str = "fast"
+    fb_sigma_px: float = 0.5
+    max_fb_px: float = 1.5
+    motion_step: int = 2
+
+
+_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+            "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
+
+
+def guided_flow(src_gray: np.ndarray, tgt_gray: np.ndarray, motion: np.ndarray, preset: str = "medium"
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Total flow (H, W, 2) px from source to target and forward-backward error (H, W) px.
+
+    motion (H, W, 2): guide displacement (NaN = none, treated as 0).
+    """
+    H, W = src_gray.shape
+    m = np.nan_to_num(motion, nan=0.0).astype(np.float32)
+    gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    warped = cv2.remap(tgt_gray, gx + m[..., 0], gy + m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    dis = cv2.DISOpticalFlow_create(_PRESETS[preset])
+    fwd = dis.calc(src_gray, warped, None)
+    bwd = dis.calc(warped, src_gray, None)
+    # forward-backward consistency of the residual flow
+    bx = cv2.remap(bwd, gx + fwd[..., 0], gy + fwd[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    fb = np.linalg.norm(fwd + bx, axis=2)
+    # total: x -> x + r(x) in the warped image -> x + r + m(x + r) in the target
+    mr = cv2.remap(m, gx + fwd[..., 0], gy + fwd[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return fwd + mr, fb
+
+
+def m_at(guide: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """Guide displacement (H, W, 2) sampled at x + flow(x) (bilinear, replicated border)."""
+    H, W = guide.shape[:2]
+    gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    return cv2.remap(guide, gx + flow[..., 0], gy + flow[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def flow_matches(source: Source, targets: list[ViewFrame], estimate: np.ndarray, params: FlowParams,
+                 max_prediction_error_mm: float = 3.0) -> Matches:
+    """Dense guided-flow matches source -> target in every view, lifted to barycentric constraints.
+    Weight = ``exp(-fb^2 / (2 sigma^2))``."""
+    out = []
+    for v, tgt in enumerate(targets):
+        sv = source.views[v]
+        rows = np.flatnonzero((sv.tri_id >= 0).any(1))
+        cols = np.flatnonzero((sv.tri_id >= 0).any(0))
+        if rows.size == 0:
+            continue
+        H, W = sv.tri_id.shape
+        pad = 16
+        y0, y1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, H)
+        x0, x1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, W)
+        motion = source.motion_field(v, estimate, step=params.motion_step)[y0:y1, x0:x1]
+        # the target crop is the source crop moved by the guide; remap works in full-image coordinates
+        gx, gy = np.meshgrid(np.arange(x0, x1, dtype=np.float32), np.arange(y0, y1, dtype=np.float32))
+        m = np.nan_to_num(motion, nan=0.0).astype(np.float32)
+        warped = cv2.remap(tgt.gray, gx + m[..., 0], gy + m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        flow, fb = guided_flow(np.ascontiguousarray(sv.frame.gray[y0:y1, x0:x1]), warped, np.zeros_like(m), params.preset)
+        flow = flow + m_at(m, flow)  # total = residual + guide at the residually displaced position
+        step = max(2, int(round(params.grid_px * tgt.camera.width / 1280.0)))
+        ys, xs = np.mgrid[step // 2:y1 - y0:step, step // 2:x1 - x0:step]
+        sel = (sv.tri_id[ys + y0, xs + x0] >= 0) & (fb[ys, xs] <= params.max_fb_px)
+        xs, ys = xs[sel], ys[sel]
+        src_uv = np.stack([xs + x0, ys + y0], 1).astype(np.float64)
+        tgt_uv = src_uv + flow[ys, xs].astype(np.float64)
+        w = np.exp(-fb[ys, xs].astype(np.float64) ** 2 / (2 * params.fb_sigma_px ** 2))
+        out.append(lift_matches(source, v, src_uv, tgt_uv, tgt, w, "flow", estimate=estimate,
+                                max_prediction_error_mm=max_prediction_error_mm))
+    return concat(out, "flow")

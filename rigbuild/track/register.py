@@ -1,0 +1,270 @@
+"""Automatic neutral registration: template neutral -> actor's neutral reconstruction (Ma et al. 2016 s. 2.2).
+
+1. **Landmark-driven similarity.** The painted dots (triangulated, unlabeled) are labeled by aligning the
+   template's marker set to them (similarity ICP from a few starting rotations + optimal assignment),
+   then :func:`rigbuild.geometry.fit_similarity` on the labeled pairs places the template.
+2. **Non-rigid registration.** Laplacian-regularized deformation (:class:`LaplacianSolver`, rotated
+   Laplacian coordinates) with three data terms, re-linearized every iteration:
+   closest point (point-to-plane to the scan, distance- and normal-gated), landmark points (triangulated
+   dots at the marker vertices) and the projective image term (each 2-D dot detection constrains its
+   marker vertex to the camera ray through it; linearized as the ray's closest point).
+   The schedule loosens the regularization (lambda grows) while the closest-point gate shrinks.
+
+No hand-placed points: everything derives from the dot detections and the scan.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+
+from rigbuild.errors import InputError
+from rigbuild.geometry.rigid import apply_rigid, fit_similarity
+from rigbuild.rig import Rig
+from rigbuild.track.laplacian import LaplacianSolver
+from rigbuild.track.mesh import TrackingMesh, build_tracking_mesh
+
+
+@dataclass
+class RayObservations:
+    """2-D detections of marker vertices as world rays (the projective image term).
+
+    marker : (N,) index into the rig's marker list; origin : (N, 3) camera centres mm; direction : (N, 3)
+    unit world ray directions through the detections.
+    """
+
+    marker: np.ndarray
+    origin: np.ndarray
+    direction: np.ndarray
+
+
+@dataclass
+class NeutralRegistration:
+    """Result: ``vertices`` (V, 3) mm actor neutral in template topology; ``markers`` (M, 3) the marker
+    vertices on it; ``similarity`` (s, R, t) template -> world; ``dot_labels`` (M,) index of the dot
+    matched to each marker (-1 none); per-iteration ``history`` of residuals (mm)."""
+
+    vertices: np.ndarray
+    markers: np.ndarray
+    similarity: tuple[float, np.ndarray, np.ndarray]
+    dot_labels: np.ndarray
+    scan_rms_mm: float  # point-to-plane RMS of the face region to the scan
+    dot_rms_mm: float
+    history: list[dict] = field(default_factory=list)
+
+
+def require_markers(template: Rig) -> None:
+    """Raise :class:`InputError` if the template has no usable marker/landmark vertices."""
+    if template.marker_vertices.size < 4:
+        raise InputError(
+            f"template rig '{template.name}' defines {template.marker_vertices.size} marker vertices; tracking "
+            "needs at least 4 face features (the painted dots at the rig's marker vertices)",
+            fix="give the template a marker set (rig.json 'markers', rigbuild/data/markers/<rig>.json) or use a rig "
+                "whose markers are defined",
+        )
+
+
+def _rotation_candidates(src: np.ndarray, dst: np.ndarray) -> list[np.ndarray]:
+    """Starting rotations: identity plus the 4 proper principal-axes alignments of src onto dst."""
+    def axes(p):
+        c = p - p.mean(0)
+        _, _, vt = np.linalg.svd(c, full_matrices=False)
+        return vt  # rows = principal axes
+
+    A, B = axes(src), axes(dst)
+    out = [np.eye(3)]
+    for sx in (1, -1):
+        for sy in (1, -1):
+            D = np.diag([sx, sy, sx * sy])
+            R = B.T @ D @ A
+            if np.linalg.det(R) < 0:
+                R = B.T @ np.diag([sx, sy, -sx * sy]) @ A
+            out.append(R)
+    return out
+
+
+def label_dots(template_markers: np.ndarray, dots: np.ndarray, gate_mm: float = 6.0,
+               iterations: int = 30) -> tuple[np.ndarray, tuple[float, np.ndarray, np.ndarray], float]:
+    """Assign unlabeled 3-D dots to the template's markers.
+
+    template_markers (M, 3) mm, dots (D, 3) mm. Similarity ICP (nearest neighbours, trimmed) from each
+    candidate rotation; the best final fit is refined with an optimal one-to-one assignment
+    (Hungarian) gated at ``gate_mm``. Returns labels (M,) dot index per marker or -1, the similarity
+    (s, R, t) mapping template -> dots, and the RMS of the labeled pairs (mm).
+    """
+    tm = np.asarray(template_markers, dtype=np.float64)
+    dots = np.asarray(dots, dtype=np.float64)
+    if dots.shape[0] < 4:
+        raise InputError(f"only {dots.shape[0]} painted dots were found on the neutral frame (need >= 4)",
+                         fix="check the dot detector thresholds (track.dots) and that the actor's dots are visible")
+    tree = cKDTree(dots)
+    s0 = np.sqrt(((dots - dots.mean(0)) ** 2).sum(1).mean() / max(((tm - tm.mean(0)) ** 2).sum(1).mean(), 1e-12))
+    best = None
+    for R0 in _rotation_candidates(tm, dots):
+        s, R, t = s0, R0, dots.mean(0) - s0 * R0 @ tm.mean(0)
+        for _ in range(iterations):
+            x = apply_rigid(tm, R, t, s)
+            d, j = tree.query(x)
+            keep = d <= max(np.percentile(d, 80), 1e-9)
+            if keep.sum() < 4:
+                break
+            s, R, t = fit_similarity(tm[keep], dots[j[keep]])
+        x = apply_rigid(tm, R, t, s)
+        d, _ = tree.query(x)
+        score = float(np.mean(np.minimum(d, 3 * gate_mm)))
+        if best is None or score < best[0]:
+            best = (score, s, R, t)
+    _, s, R, t = best
+    labels = np.full(tm.shape[0], -1, dtype=np.int64)
+    for _ in range(3):
+        x = apply_rigid(tm, R, t, s)
+        cost = np.linalg.norm(x[:, None, :] - dots[None, :, :], axis=2)
+        rows, cols = linear_sum_assignment(np.minimum(cost, 10 * gate_mm))
+        ok = cost[rows, cols] <= gate_mm
+        labels[:] = -1
+        labels[rows[ok]] = cols[ok]
+        if ok.sum() < 4:
+            raise InputError(f"only {int(ok.sum())} dots could be matched to the template's markers",
+                             fix="the neutral frame must show the actor's painted dots in a neutral pose")
+        s, R, t = fit_similarity(tm[rows[ok]], dots[cols[ok]])
+    m = labels >= 0
+    rms = float(np.sqrt(np.mean(np.sum((apply_rigid(tm[m], R, t, s) - dots[labels[m]]) ** 2, axis=1))))
+    return labels, (float(s), R, t), rms
+
+
+def fit_affine(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares affine map ``dst ~ A src + b`` (src, dst (N, 3), N >= 4). Returns A (3, 3), b (3,)."""
+    X = np.hstack([src, np.ones((src.shape[0], 1))])
+    sol, *_ = np.linalg.lstsq(X, dst, rcond=None)
+    return sol[:3].T, sol[3]
+
+
+def closest_point_targets(points: np.ndarray, normals: np.ndarray, tree: cKDTree, scan_points: np.ndarray,
+                          scan_normals: np.ndarray, gate_mm: float, max_angle_deg: float = 60.0
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Point-to-plane closest-point targets on a scan.
+
+    points, normals (N, 3) current mesh vertices and unit normals; the scan as a KD-tree of
+    ``scan_points`` (S, 3) with unit ``scan_normals``. Returns targets (N, 3) (the mesh point projected onto
+    the tangent plane of its nearest scan point), weights (N,) in [0, 1] (0 = rejected by the distance
+    gate or normal compatibility) and distances (N,) mm.
+    """
+    d, j = tree.query(points)
+    q, n = scan_points[j], scan_normals[j]
+    off = np.einsum("nd,nd->n", q - points, n)
+    targets = points + off[:, None] * n
+    cos = np.einsum("nd,nd->n", normals, n)
+    w = np.where((d <= gate_mm) & (cos >= np.cos(np.radians(max_angle_deg))), 1.0, 0.0) * np.clip(cos, 0, 1)
+    return targets, w, d
+
+
+def ray_targets(points: np.ndarray, origin: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Closest points (N, 3) on rays ``origin + s direction`` (unit directions) to ``points`` (N, 3)."""
+    s = np.einsum("nd,nd->n", points - origin, direction)
+    return origin + s[:, None] * direction
+
+
+def register_neutral(
+    template: Rig,
+    scan_points: np.ndarray,
+    scan_normals: np.ndarray,
+    dots: np.ndarray,
+    rays: RayObservations | None = None,
+    ray_labels_are_dots: bool = True,
+    iterations: int = 12,
+    lam_schedule: tuple[float, float] = (0.2, 20.0),
+    gate_schedule_mm: tuple[float, float] = (8.0, 2.0),
+    dot_weight: float = 3.0,
+    ray_weight: float = 1.0,
+    mesh: TrackingMesh | None = None,
+    affine: bool = True,
+) -> NeutralRegistration:
+    """Register the template's neutral to the actor's neutral scan.
+
+    template : Rig in mm with marker vertices (the painted dots); scan_points, scan_normals (S, 3): the
+    reconstructed neutral surface (mm, unit normals, e.g. the fused mesh's vertices); dots (D, 3) mm:
+    triangulated dot centres (unlabeled); rays : 2-D dot detections as rays; their ``marker`` field holds a
+    dot index (``ray_labels_are_dots``) that is converted to a marker index through the labeling.
+    iterations : non-rigid iterations; lam_schedule : data weight lambda from first to last iteration
+    (geometric); gate_schedule_mm : closest-point distance gate from first to last iteration.
+    affine : after the similarity, refine the landmark alignment to an affine map (12 parameters,
+    least squares on the labeled dots) before the non-rigid stage.
+
+    Returns :class:`NeutralRegistration` (vertices in full template topology).
+    """
+    require_markers(template)
+    scan_points = np.asarray(scan_points, dtype=np.float64)
+    scan_normals = np.asarray(scan_normals, dtype=np.float64)
+    if scan_points.shape[0] < 100:
+        raise InputError(f"the neutral scan has only {scan_points.shape[0]} points",
+                         fix="check the reconstruction of the neutral frame (depth maps / fused mesh)")
+    mesh = mesh or build_tracking_mesh(template.neutral, template.faces, template.face_region)
+    labels, (s, R, t), _ = label_dots(template.markers(), dots)
+    aligned_full = apply_rigid(template.neutral, R, t, s)
+    if affine:  # landmark-driven affine refinement (captures anisotropic proportions)
+        lab = labels >= 0
+        A, b = fit_affine(template.markers()[lab], dots[labels[lab]])
+        aligned_full = template.neutral @ A.T + b
+    rest = mesh.local(aligned_full)
+    solver = LaplacianSolver(rest, mesh.faces)
+    tree = cKDTree(scan_points)
+    mk_local = mesh.full_to_local[template.marker_vertices]
+    has_dot = (labels >= 0) & (mk_local >= 0)
+    dot_tri, dot_bary = mesh.vertex_points(mk_local[has_dot])
+    dot_targets = dots[labels[has_dot]]
+    if rays is not None and rays.marker.size:
+        if ray_labels_are_dots:
+            dot_to_marker = np.full(dots.shape[0], -1, dtype=np.int64)
+            dot_to_marker[labels[labels >= 0]] = np.flatnonzero(labels >= 0)
+            r_marker = dot_to_marker[rays.marker]
+        else:
+            r_marker = np.asarray(rays.marker, dtype=np.int64)
+        r_ok = (r_marker >= 0)
+        r_ok[r_ok] &= mk_local[r_marker[r_ok]] >= 0
+        r_local = mk_local[r_marker[r_ok]]
+        r_tri, r_bary = mesh.vertex_points(r_local)
+        r_origin, r_dir = rays.origin[r_ok], rays.direction[r_ok]
+    else:
+        r_local = np.zeros(0, dtype=np.int64)
+    face = mesh.face_local
+    p = rest.copy()
+    history = []
+    from rigbuild.track.laplacian import vertex_normals
+
+    for it in range(iterations):
+        a = it / max(iterations - 1, 1)
+        lam = lam_schedule[0] * (lam_schedule[1] / lam_schedule[0]) ** a
+        gate = gate_schedule_mm[0] * (gate_schedule_mm[1] / gate_schedule_mm[0]) ** a
+        nrm = vertex_normals(p, mesh.faces)
+        tgt, w, dist = closest_point_targets(p[face], nrm[face], tree, scan_points, scan_normals, gate)
+        cp_tri, cp_bary = mesh.vertex_points(face)
+        tris = [cp_tri, dot_tri]
+        barys = [cp_bary, dot_bary]
+        tgts = [tgt, dot_targets]
+        ws = [w, np.full(dot_tri.size, dot_weight)]
+        if r_local.size:
+            tris.append(r_tri)
+            barys.append(r_bary)
+            tgts.append(ray_targets(p[r_local], r_origin, r_dir))
+            ws.append(np.full(r_local.size, ray_weight))
+        delta = solver.rotated_delta(p)
+        p, rep = solver.solve(np.concatenate(tris), np.concatenate(barys), np.concatenate(tgts),
+                              np.concatenate(ws), lam, delta=delta, prior=p)
+        valid = w > 0
+        history.append({"iteration": it, "lambda": lam, "gate_mm": gate,
+                        "scan_median_mm": float(np.median(dist[valid])) if valid.any() else float("nan"),
+                        "closest_points": int(valid.sum()),
+                        "dot_rms_mm": float(np.sqrt(np.mean(np.sum((p[mk_local[has_dot]] - dot_targets) ** 2, 1))))})
+    nrm = vertex_normals(p, mesh.faces)
+    tgt, w, _ = closest_point_targets(p[face], nrm[face], tree, scan_points, scan_normals, gate_schedule_mm[1])
+    dist = np.linalg.norm(tgt - p[face], axis=1)  # point-to-plane distance to the scan
+    full = mesh.to_full(p, aligned_full)
+    dot_rms = float(np.sqrt(np.mean(np.sum((p[mk_local[has_dot]] - dot_targets) ** 2, 1))))
+    return NeutralRegistration(
+        vertices=full, markers=full[template.marker_vertices], similarity=(s, R, t), dot_labels=labels,
+        scan_rms_mm=float(np.sqrt(np.mean(dist[w > 0] ** 2))) if np.any(w > 0) else float("nan"),
+        dot_rms_mm=dot_rms, history=history,
+    )

@@ -1,0 +1,383 @@
+"""Coarse-to-fine tracking of a ROM sequence (Ma et al. 2016 s. 2): per frame, three levels of image
+correspondence (painted dots -> SIFT -> guided dense flow), each lifted to barycentric constraints and
+solved with the Laplacian deformation of eq. 1; every frame is matched both against the previous frame
+and against the neutral anchor frame (drift control); lost tracking is detected per frame.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from rigbuild.errors import InputError
+from rigbuild.geometry.rigid import apply_rigid, fit_rigid_motion
+from rigbuild.track.features import DotParams, assign_detections, cluster_lifted_dots, detect_dots, lift, triangulate
+from rigbuild.track.flow import FlowParams, flow_matches
+from rigbuild.track.laplacian import LaplacianSolver, vertex_normals
+from rigbuild.track.matches import Matches, Source, ViewFrame, concat
+from rigbuild.track.register import RayObservations
+from rigbuild.track.sparse import SparseSchedule, sparse_matches
+
+log = logging.getLogger(__name__)
+
+LEVELS = ("features", "sparse", "flow")
+
+
+@dataclass
+class TrackParams:
+    """Tracking parameters (``config["params"]["track"]``). Pixel sizes are for a 1280-px-wide image and
+    scale with the image width.
+
+    levels : which levels run (subset of features, sparse, flow, coarse to fine).
+    dot_radius_px : dot assignment radii, one solve per radius (coarse to fine).
+    dot_weight, lam_features : weight of a dot constraint and lambda of the dot-only solves.
+    max_triangulation_rms_px : dots whose multi-view reprojection RMS exceeds it are dropped.
+    sparse : :class:`SparseSchedule`; flow : :class:`FlowParams`; lam_flow : lambda of the flow solves;
+    flow_iterations : flow/solve rounds.
+    anchor : match against the neutral anchor frame too; anchor_weight : relative weight of those matches.
+    lost_residual_mm : a frame is lost when the weighted median constraint residual exceeds it;
+    lost_min_matches : ... or when fewer image matches than this survive (per view on average).
+    neutral_check_mm : the first frame of a sequence must fit the neutral rigidly within this (90th percentile
+        of the dot residuals, mm).
+    rotation_iterations : Laplacian solves per dot radius, each re-fitting the per-vertex rotations of delta.
+    constant_velocity : predict a frame by constant-velocity extrapolation (default: the previous frame).
+    """
+
+    levels: tuple[str, ...] = LEVELS
+    dot_radius_px: tuple[float, ...] = (60.0, 20.0, 8.0)
+    dot_weight: float = 2.0
+    lam_features: float = 1.0
+    max_triangulation_rms_px: float = 2.5
+    dots: DotParams = field(default_factory=DotParams)
+    sparse: SparseSchedule = field(default_factory=SparseSchedule)
+    flow: FlowParams = field(default_factory=FlowParams)
+    lam_flow: float = 2.0
+    flow_iterations: int = 1
+    anchor: bool = True
+    anchor_weight: float = 1.0
+    lost_residual_mm: float = 1.0
+    lost_min_matches: int = 30
+    neutral_check_mm: float = 3.0
+    rotation_iterations: int = 2
+    constant_velocity: bool = False
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "TrackParams":
+        d = dict(d or {})
+        p = cls()
+        for k, v in d.items():
+            if k == "dots":
+                p.dots = DotParams(**v)
+            elif k == "sparse":
+                p.sparse = SparseSchedule(**{kk: tuple(vv) if isinstance(vv, list) else vv for kk, vv in v.items()})
+            elif k == "flow":
+                p.flow = FlowParams(**v)
+            elif hasattr(p, k):
+                setattr(p, k, tuple(v) if isinstance(v, list) else v)
+            else:
+                raise InputError(f"unknown tracking parameter '{k}'", path="config params.track",
+                                 fix=f"use one of {sorted(asdict(cls()).keys())}")
+        bad = [lv for lv in p.levels if lv not in LEVELS]
+        if bad or not p.levels:
+            raise InputError(f"unknown tracking levels {bad}", path="config params.track.levels", fix=f"use {LEVELS}")
+        return p
+
+
+# --------------------------------------------------------------------------------------------- dots
+def frame_dots(frame: ViewFrame, params: DotParams) -> np.ndarray:
+    """Dot detections (N, 2) of a view (cached on the frame)."""
+    if not hasattr(frame, "_dots") or frame._dots is None:
+        mask = np.isfinite(frame.depth)
+        frame._dots = detect_dots(frame.image, params, mask=mask)[0]
+    return frame._dots
+
+
+def neutral_dots(frames: list[ViewFrame], params: DotParams, cluster_mm: float = 2.5
+                 ) -> tuple[np.ndarray, RayObservations]:
+    """Unlabeled 3-D dots of a neutral frame: detections lifted with the depth maps, clustered across views,
+    triangulated from their 2-D detections. Returns dots (D, 3) mm and the detections as rays (dot index)."""
+    dets = [frame_dots(f, params) for f in frames]
+    lifted = [lift(f.camera, f.depth, d) if d.shape[0] else np.zeros((0, 3)) for f, d in zip(frames, dets)]
+    clusters = cluster_lifted_dots(lifted, radius_mm=cluster_mm)
+    C, D = len(frames), len(clusters)
+    uv = np.full((C, D, 2), np.nan)
+    for k, members in enumerate(clusters):
+        for c, i in members:
+            uv[c, k] = dets[c][i]
+    X, rms, n = triangulate([f.camera for f in frames], uv)
+    good = np.isfinite(X).all(1) & (rms <= 2.5)
+    X, uv = X[good], uv[:, good]
+    mk, org, drc = [], [], []
+    for c, f in enumerate(frames):
+        ok = np.isfinite(uv[c]).all(1)
+        if ok.any():
+            mk.append(np.flatnonzero(ok))
+            org.append(np.repeat(f.camera.center[None], ok.sum(), 0))
+            drc.append(f.camera.rays(uv[c, ok]))
+    rays = RayObservations(np.concatenate(mk), np.concatenate(org), np.concatenate(drc)) if mk else \
+        RayObservations(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
+    return X, rays
+
+
+def scan_from_depth(frames: list[ViewFrame], step: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Point cloud (N, 3) mm with unit normals (N, 3) from the depth maps of a frame (every ``step`` px),
+    normals from cross products of neighbouring lifted pixels, oriented towards the camera."""
+    pts, nrm = [], []
+    for f in frames:
+        H, W = f.depth.shape
+        ys, xs = np.mgrid[0:H - step:step, 0:W - step:step]
+        uv = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
+        P = lift(f.camera, f.depth, uv)
+        Px = lift(f.camera, f.depth, uv + [step, 0])
+        Py = lift(f.camera, f.depth, uv + [0, step])
+        n = np.cross(Px - P, Py - P)
+        ln = np.linalg.norm(n, axis=1)
+        ok = np.isfinite(n).all(1) & (ln > 0)
+        n = n[ok] / ln[ok, None]
+        view = f.camera.center - P[ok]
+        n *= np.sign(np.einsum("nd,nd->n", n, view))[:, None]
+        pts.append(P[ok])
+        nrm.append(n)
+    return np.concatenate(pts), np.concatenate(nrm)
+
+
+def _subset(m: Matches, keep: np.ndarray) -> Matches:
+    return Matches(m.tri[keep], m.bary[keep], m.targets[keep], m.weights[keep], m.view[keep], m.level)
+
+
+# --------------------------------------------------------------------------------------------- tracker
+@dataclass
+class FrameStats:
+    """Per-frame tracking statistics (one row of residuals.csv)."""
+
+    frame: int
+    dots: int = 0
+    sparse: int = 0
+    flow: int = 0
+    anchor_matches: int = 0
+    residual_median_mm: float = float("nan")
+    residual_p90_mm: float = float("nan")
+    lost: bool = False
+    reason: str = ""
+
+
+class SequenceTracker:
+    """Tracks one sequence starting from the actor's registered neutral.
+
+    local_neutral : (T, 3) mm registered neutral on the tracking mesh; faces : (F, 3) tracking-mesh
+    triangles; marker_local : (M,) tracking-mesh ids of the dot (marker) vertices; anchor_frames : the views
+    of the neutral frame the neutral was registered to (the anchor for drift).
+    The Laplacian system's symbolic factorization is computed once here and reused for every solve.
+    """
+
+    def __init__(self, local_neutral: np.ndarray, faces: np.ndarray, marker_local: np.ndarray,
+                 anchor_frames: list[ViewFrame], params: TrackParams | None = None,
+                 vertex_tri: np.ndarray | None = None, vertex_corner: np.ndarray | None = None):
+        self.p = params or TrackParams()
+        self.neutral = np.asarray(local_neutral, dtype=np.float64)
+        self.faces = np.asarray(faces, dtype=np.int64)
+        self.marker_local = np.asarray(marker_local, dtype=np.int64)
+        self.solver = LaplacianSolver(self.neutral, self.faces)
+        if vertex_tri is None:
+            vertex_tri = np.full(self.neutral.shape[0], -1, np.int64)
+            vertex_corner = np.zeros(self.neutral.shape[0], np.int64)
+            for c in range(3):
+                vertex_tri[self.faces[:, c]] = np.arange(self.faces.shape[0])
+                vertex_corner[self.faces[:, c]] = c
+        self.vertex_tri, self.vertex_corner = vertex_tri, vertex_corner
+        self.anchor = Source.build(self.neutral, self.faces, anchor_frames, "anchor") if self.p.anchor else None
+        self.anchor_dots = self.dot_matches(anchor_frames, self.neutral, self.p.dot_radius_px[-1]).n
+
+    # ------------------------------------------------------------------ levels
+    def _vertex_points(self, ids):
+        bary = np.zeros((ids.size, 3))
+        bary[np.arange(ids.size), self.vertex_corner[ids]] = 1.0
+        return self.vertex_tri[ids], bary
+
+    def dot_matches(self, frames: list[ViewFrame], estimate: np.ndarray, radius_px: float) -> Matches:
+        """Dots assigned to the predicted marker projections, triangulated -> constraints at marker vertices."""
+        M = self.marker_local.size
+        C = len(frames)
+        uv = np.full((C, M, 2), np.nan)
+        pred3 = estimate[self.marker_local]
+        nrm = vertex_normals(estimate, self.faces)[self.marker_local]
+        for c, f in enumerate(frames):
+            det = frame_dots(f, self.p.dots)
+            cam = f.camera
+            pr = cam.project(pred3)
+            facing = np.einsum("md,md->m", nrm, cam.center - pred3) > 0
+            pr[~facing] = np.nan
+            a = assign_detections(pr, det, radius_px * cam.width / 1280.0)
+            uv[c, a >= 0] = det[a[a >= 0]]
+        X, rms, n = triangulate([f.camera for f in frames], uv)
+        ok = np.isfinite(X).all(1) & (rms <= self.p.max_triangulation_rms_px)
+        ids = np.flatnonzero(ok)
+        tri, bary = self._vertex_points(self.marker_local[ids])
+        return Matches(tri, bary, X[ids], np.full(ids.size, self.p.dot_weight), np.zeros(ids.size, np.int64), "features")
+
+    def _robust_rigid(self, m: Matches, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """Trimmed Kabsch of the matches' current positions onto their targets: R, t, inlier RMS (mm)."""
+        src = np.einsum("nk,nkd->nd", m.bary, estimate[self.faces[m.tri]])
+        keep = np.ones(m.n, dtype=bool)
+        for _ in range(4):
+            R, t = fit_rigid_motion(src[keep], m.targets[keep])
+            r = np.linalg.norm(apply_rigid(src, R, t) - m.targets, axis=1)
+            keep = r <= max(2.5 * np.median(r), 1.0)
+            if keep.sum() < 4:
+                keep = r <= np.sort(r)[min(3, r.size - 1)]
+        rms = float(np.sqrt(np.mean(r[keep] ** 2)))
+        return R, t, rms
+
+    def _solve(self, m: Matches, lam: float, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        delta = self.solver.rotated_delta(estimate)
+        p, rep = self.solver.solve(m.tri, m.bary, m.targets, m.weights, lam, delta=delta, prior=estimate)
+        return p, rep.residual_mm
+
+    # ------------------------------------------------------------------ frames
+    def rigid_start(self, frames: list[ViewFrame], sequence: str = "") -> np.ndarray:
+        """Rigidly place the neutral on the first frame of a sequence from its dots; raise InputError when
+        the first frame is not neutral-like (rigid dot residual above ``neutral_check_mm``)."""
+        m = self.dot_matches(frames, self.neutral, self.p.dot_radius_px[0])
+        if m.n < 4:
+            raise InputError(f"sequence '{sequence}': only {m.n} painted dots found on its first frame",
+                             fix="check the images of the sequence's neutral_frame and the dot detector settings")
+        R, t, _ = self._robust_rigid(m, self.neutral)
+        for r_px in self.p.dot_radius_px[1:]:  # re-assign closer to the rigid prediction
+            m2 = self.dot_matches(frames, apply_rigid(self.neutral, R, t), r_px)
+            if m2.n >= 4:
+                R, t, _ = self._robust_rigid(m2, self.neutral)
+        # neutral check on all dots found around the rigidly placed neutral (expression dots included)
+        m = self.dot_matches(frames, apply_rigid(self.neutral, R, t), self.p.dot_radius_px[0])
+        src = np.einsum("nk,nkd->nd", m.bary, self.neutral[self.faces[m.tri]])
+        r = np.linalg.norm(apply_rigid(src, R, t) - m.targets, axis=1)
+        # dots seen on the anchor (neutral) frame but not found near the rigid neutral count as misfits
+        missing = max(self.anchor_dots - m.n, 0)
+        r = np.concatenate([r, np.full(missing, np.inf)])
+        rms = float(np.sort(r)[int(np.ceil(0.9 * r.size)) - 1]) if r.size else float("inf")
+        if rms > self.p.neutral_check_mm:
+            raise InputError(
+                f"sequence '{sequence}': its first frame is not neutral-like (the neutral fits its dots rigidly only "
+                f"to {rms:.2f} mm (90th percentile, dots missing from where the neutral predicts them count as "
+                f"infinite) > {self.p.neutral_check_mm} mm)",
+                path="session.yaml", fix=f"set rom[{sequence}].neutral_frame to a frame where the actor is at rest")
+        return apply_rigid(self.neutral, R, t)
+
+    def track_frame(self, frames: list[ViewFrame], estimate: np.ndarray, sources: list[Source], frame: int
+                    ) -> tuple[np.ndarray, FrameStats, Matches]:
+        """Register the tracking mesh to one target frame, coarse to fine. Returns vertices (T, 3), stats and
+        the final constraint set."""
+        st = FrameStats(frame)
+        p = estimate.copy()
+        dots = Matches.empty("features")
+        if "features" in self.p.levels:
+            for k, r in enumerate(self.p.dot_radius_px):
+                dots = self.dot_matches(frames, p, r)
+                if dots.n < 4:
+                    continue
+                if k == 0:  # coarse: robust rigid motion first, then re-assign
+                    R, t, _ = self._robust_rigid(dots, p)
+                    p = apply_rigid(p, R, t)
+                    dots = self.dot_matches(frames, p, r)
+                    if dots.n < 4:
+                        continue
+                for _ in range(self.p.rotation_iterations):
+                    p, res = self._solve(dots, self.p.lam_features, p)
+                    bad = res > max(4.0 * np.median(res), 0.5)
+                    if bad.any() and (~bad).sum() >= 4:  # drop mislabeled dots and re-solve
+                        dots = _subset(dots, ~bad)
+            st.dots = dots.n
+        sparse = Matches.empty("sparse")
+        if "sparse" in self.p.levels:
+            sch = self.p.sparse
+            for k in range(len(sch.radius_px)):
+                parts = []
+                for s in sources:
+                    mm = sparse_matches(s, frames, p, k, sch)
+                    if s.name == "anchor":
+                        mm.weights = mm.weights * self.p.anchor_weight
+                        st.anchor_matches = mm.n
+                    parts.append(mm)
+                sparse = concat(parts, "sparse")
+                allm = concat([dots, sparse])
+                if allm.n >= 4:
+                    p, _ = self._solve(allm, sch.lam[min(k, len(sch.lam) - 1)], p)
+            st.sparse = sparse.n
+        flow = Matches.empty("flow")
+        if "flow" in self.p.levels:
+            for _ in range(self.p.flow_iterations):
+                parts = []
+                for s in sources:
+                    mm = flow_matches(s, frames, p, self.p.flow)
+                    if s.name == "anchor":
+                        mm.weights = mm.weights * self.p.anchor_weight
+                        st.anchor_matches = mm.n
+                    parts.append(mm)
+                flow = concat(parts, "flow")
+                allm = concat([dots, sparse, flow])
+                if allm.n >= 4:
+                    p, _ = self._solve(allm, self.p.lam_flow, p)
+            st.flow = flow.n
+        final = concat([dots, sparse, flow])
+        if final.n:
+            res = np.linalg.norm(np.einsum("nk,nkd->nd", final.bary, p[self.faces[final.tri]]) - final.targets, axis=1)
+            st.residual_median_mm = float(np.median(res))
+            st.residual_p90_mm = float(np.percentile(res, 90))
+        n_img = sparse.n + flow.n
+        needs_img = ("sparse" in self.p.levels) or ("flow" in self.p.levels)
+        reasons = []
+        if final.n < 4:
+            reasons.append(f"{final.n} constraints")
+        if needs_img and n_img < self.p.lost_min_matches * len(frames):
+            reasons.append(f"{n_img} image matches < {self.p.lost_min_matches * len(frames)}")
+        if np.isfinite(st.residual_median_mm) and st.residual_median_mm > self.p.lost_residual_mm:
+            reasons.append(f"median residual {st.residual_median_mm:.2f} mm > {self.p.lost_residual_mm} mm")
+        st.lost = bool(reasons)
+        st.reason = "; ".join(reasons)
+        if st.lost:
+            log.warning("frame %d: tracking lost (%s)", frame, st.reason)
+        return p, st, final
+
+    def track(self, frames_per_time: list[list[ViewFrame]], frame_ids: list[int], sequence: str = "",
+              progress=None) -> tuple[np.ndarray, np.ndarray, list[FrameStats]]:
+        """Track a whole sequence (its first frame is the neutral frame).
+
+        frames_per_time : per frame, the views (ViewFrame per camera, same camera order as the anchor).
+        Returns vertices (F, T, 3) mm, per-vertex confidence (F, T) in [0, 1], per-frame stats.
+        """
+        out, conf, stats = [], [], []
+        sources_prev: Source | None = None
+        prev = prev2 = None
+        for i, (frames, fid) in enumerate(zip(frames_per_time, frame_ids)):
+            if i == 0:
+                est = self.rigid_start(frames, sequence) if "features" in self.p.levels else self.neutral.copy()
+                srcs = [self.anchor] if self.anchor is not None else []
+                if not srcs:
+                    srcs = []
+            else:
+                est = prev + (prev - prev2) if (prev2 is not None and self.p.constant_velocity) else prev.copy()
+                srcs = [sources_prev] + ([self.anchor] if self.anchor is not None else [])
+            p, st, final = self.track_frame(frames, est, [s for s in srcs if s is not None], fid)
+            out.append(p)
+            conf.append(self.confidence(final, lost=st.lost))
+            stats.append(st)
+            if progress:
+                progress(st)
+            prev2, prev = prev, p
+            if i + 1 < len(frames_per_time) and (("sparse" in self.p.levels) or ("flow" in self.p.levels)):
+                sources_prev = Source.build(p, self.faces, frames, "previous")
+        return np.stack(out), np.stack(conf), stats
+
+    def confidence(self, m: Matches, lost: bool = False, scale: float = 1.0) -> np.ndarray:
+        """Per-vertex confidence (T,) = 1 - exp(-(sum of match weights touching the vertex's 1-ring) / scale)."""
+        T = self.neutral.shape[0]
+        if lost or m.n == 0:
+            return np.zeros(T)
+        s = np.zeros(T)
+        for k in range(3):
+            np.add.at(s, self.faces[m.tri, k], m.weights * m.bary[:, k])
+        ring = self.solver.L.copy()
+        ring.data = np.abs(ring.data) > 0
+        s = ring.T @ s
+        return 1.0 - np.exp(-s / scale)

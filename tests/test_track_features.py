@@ -1,0 +1,141 @@
+"""Unit tests of tracking level helpers: dots, lifting, triangulation, guided matching, guided flow."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from rigbuild.camera import Camera, look_at
+from rigbuild.errors import InputError
+from rigbuild.track.features import (DotParams, assign_detections, depth_to_image_grid, detect_dots, lift,
+                                     triangulate)
+from rigbuild.track.flow import guided_flow
+from rigbuild.track.matches import ViewFrame
+from rigbuild.track.sparse import match_guided
+
+
+def _cam(cid="c", center=(0, 0, -500), dist=(0, 0, 0, 0, 0), W=320, H=240):
+    R, t = look_at(np.array(center, float), np.zeros(3), (0, 1, 0))
+    return Camera(cid, W, H, [[400, 0, W / 2 - 0.5], [0, 400, H / 2 - 0.5], [0, 0, 1]], dist, R, t)
+
+
+def test_detect_dots_finds_grey_discs_not_reddish_speckle():
+    rng = np.random.default_rng(0)
+    img = np.empty((120, 160, 3), np.float32)
+    img[:] = (198, 148, 122)
+    centres = np.array([[30.0, 40.0], [100.0, 60.0], [130.0, 95.0]])
+    n_blobs = 0
+    while n_blobs < 40:  # reddish dark speckle blobs (not dots), not touching the dots
+        c = rng.integers(5, [155, 115])
+        if np.min(np.linalg.norm(centres - c, axis=1)) > 10:
+            cv2.circle(img, (int(c[0]), int(c[1])), 3, (70, 42, 34), -1)
+            n_blobs += 1
+    for x, y in centres:
+        cv2.circle(img, (int(x), int(y)), 4, (25, 25, 25), -1)
+    img += rng.normal(0, 1.5, img.shape)
+    det, area = detect_dots(np.clip(img, 0, 255).astype(np.uint8), DotParams())
+    assert det.shape[0] == 3
+    a = assign_detections(centres, det, 2.0)
+    assert np.all(a >= 0)
+    np.testing.assert_allclose(det[a], centres, atol=0.3)
+
+
+def test_assign_detections_gates_and_rejects_ambiguous():
+    pred = np.array([[0, 0], [10, 0], [50, 50], [np.nan, np.nan]], float)
+    det = np.array([[0.5, 0], [10, 1], [80, 80], [52, 50], [53, 50]])
+    a = assign_detections(pred, det, 5.0, ambiguity_ratio=1.5)
+    assert a[0] == 0 and a[1] == 1 and a[3] == -1
+    assert a[2] == -1  # two detections at 2 and 3 px: ambiguous
+
+
+def test_lift_and_triangulate_exact():
+    cams = [_cam("a", (0, 0, -500)), _cam("b", (200, 30, -460)), _cam("c", (-150, -40, -480), dist=(0.05, 0, 0, 0, 0))]
+    X = np.array([[0, 0, 0], [10, -5, 3], [-20, 15, -8.0]])
+    uv = np.stack([c.project(X) for c in cams])
+    Xt, rms, n = triangulate(cams, uv)
+    np.testing.assert_allclose(Xt, X, atol=1e-6)
+    assert np.all(n == 3) and np.all(rms < 1e-5)
+    # lift with an exact depth map of a plane z = 0 seen by camera a (no distortion): world point recovered
+    cam = cams[0]
+    H, W = cam.height, cam.width
+    depth = np.full((H, W), 500.0, np.float32)
+    P = lift(cam, depth, cam.project(X[:1]))
+    np.testing.assert_allclose(P, X[:1], atol=1e-3)
+    # depth jump -> NaN
+    depth[:, : W // 2] = 300.0
+    assert np.isnan(lift(cam, depth, np.array([[W / 2 - 0.5, 10.0]]))).all()
+
+
+def test_depth_to_image_grid_undistorts():
+    cam = _cam("d", dist=(-0.2, 0.05, 0, 0, 0))
+    H, W = cam.height, cam.width
+    ys, xs = np.mgrid[0:H, 0:W]
+    d_pin = (500 + 0.1 * xs).astype(np.float32)  # depth varies along the pinhole x axis
+    d_img = depth_to_image_grid(d_pin, cam)
+    uv = np.array([[20.0, 30.0], [300.0, 200.0]])
+    pin = cam.undistort_points(uv) * 400 + [W / 2 - 0.5, H / 2 - 0.5]
+    np.testing.assert_allclose(d_img[uv[:, 1].astype(int), uv[:, 0].astype(int)], 500 + 0.1 * pin[:, 0], atol=1e-3)
+
+
+def test_viewframe_requires_depth():
+    with pytest.raises(InputError, match="no depth map"):
+        ViewFrame(_cam(), np.zeros((240, 320, 3), np.uint8), None)
+
+
+def test_match_guided_respects_search_region_and_threshold():
+    rng = np.random.default_rng(1)
+    D = rng.normal(size=(5, 128)).astype(np.float32) * 50
+    src = np.array([[10, 10], [50, 50], [90, 90], [130, 130], [170, 170.0]])
+    tgt = src + [3, -2]
+    pred = src.copy()
+    pred[4] += 40  # prediction far off -> outside the radius
+    s, t, d = match_guided(src, D, pred, tgt, D + 1.0, radius_px=8, threshold=100, ratio=0.9)
+    assert sorted(s.tolist()) == [0, 1, 2, 3] and np.all(s == t)
+    s2, _, _ = match_guided(src, D, pred, tgt, D + 30.0, radius_px=8, threshold=100, ratio=0.9)
+    assert s2.size == 0  # descriptor distance 30 * sqrt(128) > threshold
+
+
+def test_guided_flow_recovers_shift_with_guide():
+    rng = np.random.default_rng(2)
+    base = cv2.GaussianBlur(rng.uniform(0, 255, (200, 260)).astype(np.float32), (0, 0), 2.0)
+    base = cv2.normalize(base, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    shift = np.array([17.3, -9.6])  # too big for a 1-level DIS without a guide
+    M = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
+    tgt = cv2.warpAffine(base, M, (260, 200), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    guide = np.zeros((200, 260, 2), np.float32) + (shift + [1.2, -0.8]).astype(np.float32)  # approximate guide
+    flow, fb = guided_flow(base, tgt, guide, "medium")
+    inner = (slice(40, 160), slice(40, 220))
+    err = np.linalg.norm(flow[inner] - shift, axis=2)
+    assert np.median(err) < 0.1
+    assert np.median(fb[inner]) < 0.2
+
+
+def test_script_reads_reconstruct_depth_files(tmp_path):
+    """scripts/track.py reads the reconstruct stage's depth npz (pinhole grids) onto the distorted image grid,
+    and a missing file is an InputError naming the file."""
+    import importlib.util
+
+    from rigbuild.io.depth import write_depth
+    from rigbuild.paths import PROJECT_ROOT
+
+    spec = importlib.util.spec_from_file_location("track_script", PROJECT_ROOT / "scripts" / "track.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    cams = [_cam("b", dist=(-0.1, 0, 0, 0, 0)), _cam("a")]
+    pin = [Camera(c.id, c.width, c.height, c.K, np.zeros(5), c.R, c.t) for c in cams]
+    depth = np.stack([np.full((240, 320), 480.0, np.float32), np.full((240, 320), 510.0, np.float32)])
+    write_depth(tmp_path / "000003.npz", pin[::-1], depth[::-1], np.ones_like(depth))  # file order a, b
+    maps = mod.read_depth_maps(tmp_path / "000003.npz", cams)
+    assert np.nanmedian(maps[0]) == pytest.approx(480.0, abs=0.01)  # camera b found by id
+    assert np.nanmedian(maps[1]) == pytest.approx(510.0, abs=0.01)
+    with pytest.raises(InputError, match="depth"):
+        mod.read_depth_maps(tmp_path / "000004.npz", cams)
+    # report figures of the stage
+    rows = [{"frame": f, "dots": 40, "sparse": 900, "flow": 5000, "anchor_matches": 2000, "residual_median_mm": 0.05,
+             "residual_p90_mm": 0.2, "lost": f == 2, "reason": ""} for f in range(4)]
+    mod._residual_plot(tmp_path / "residuals.png", rows, "test")
+    import cv2
+
+    img = cv2.imread(str(tmp_path / "residuals.png"))
+    assert img is not None and img.shape[0] > 100 and img.shape[1] > 300
