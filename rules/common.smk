@@ -137,6 +137,8 @@ RETARGET_METHODS = ["ribera", "ribera_activation", "rbf", "seol"]
 def stage_targets(session):
     """Every stage output of a session (the report depends on them all)."""
     targets = [results(session, "calib", "cameras.json")]
+    targets += [results(session, "reconstruct", seq, "recon_metrics.json") for seq in sequences(session)]
+    targets += [results(session, "track", "track_summary.json"), results(session, "personalize", "rig.npz")]
     for perf in performances(session):
         for character in CHARACTERS:
             for method in RETARGET_METHODS:
@@ -144,3 +146,60 @@ def stage_targets(session):
                 if is_synthetic(session):
                     targets.append(results(session, "retarget", method, perf, character, "eval_metrics.json"))
     return targets
+
+
+# ---- used by rules/track.smk
+
+def _track_images(session, seq_name, frames):
+    spec = session_spec(session)
+    return [str(spec.rom_image(seq_name, cam, f)) for cam in spec.cameras for f in frames]
+
+
+def _track_neutral_inputs(wc):
+    spec = session_spec(wc.session)
+    seq = spec.rom[0]
+    return {
+        "session_yaml": f"{session_dir(wc.session)}/session.yaml",
+        "cameras": f"results/{wc.session}/calib/cameras.json",
+        "images": _track_images(wc.session, seq.name, [seq.neutral_frame]),
+        "depth": f"results/{wc.session}/reconstruct/{seq.name}/depth/{seq.neutral_frame:06d}.npz",
+    }
+
+
+def _track_sequence_inputs(wc):
+    spec = session_spec(wc.session)
+    seq = next(s for s in spec.rom if s.name == wc.sequence)
+    frames = [f for f in seq.frames if f >= seq.neutral_frame]
+    anchor = spec.rom[0]
+    return {
+        "session_yaml": f"{session_dir(wc.session)}/session.yaml",
+        "cameras": f"results/{wc.session}/calib/cameras.json",
+        "neutral": f"results/{wc.session}/track/neutral.npz",
+        "images": _track_images(wc.session, seq.name, frames),
+        "depth": [f"results/{wc.session}/reconstruct/{seq.name}/depth/{f:06d}.npz" for f in frames],
+        "anchor_depth": f"results/{wc.session}/reconstruct/{anchor.name}/depth/{anchor.neutral_frame:06d}.npz",
+    }
+
+
+# ---- used by rules/personalize.smk
+
+def _personalize_template(wc):
+    p = config["params"].get("personalize", {})
+    spec = p.get("template_rig") or session_spec(wc.session).template_rig
+    if spec in ("procedural", "ict"):
+        return spec
+    return str(Path(spec) if Path(spec).is_absolute() else Path(workflow.basedir) / spec)
+
+
+# ---- used by rules/retarget.smk
+
+RIBERA_METHODS = ["ribera", "ribera_activation", "rbf"]
+
+
+def _ribera_training(wc):
+    return [f"results/{wc.session}/track/{seq.name}/markers.npz" for seq in session_spec(wc.session).rom]
+
+
+def _ribera_neutral_frames(wc):
+    # tracked markers.npz rows start at each sequence's first frame
+    return [int(seq.neutral_frame) - int(seq.start) for seq in session_spec(wc.session).rom]

@@ -4,14 +4,6 @@
 # confidence F x V) for every ROM sequence.
 
 
-def _personalize_template(wc):
-    p = config["params"].get("personalize", {})
-    spec = p.get("template_rig") or session_spec(wc.session).template_rig
-    if spec in ("procedural", "ict"):
-        return spec
-    return str(Path(spec) if Path(spec).is_absolute() else Path(workflow.basedir) / spec)
-
-
 rule personalize:
     input:
         tracks=lambda wc: [f"results/{wc.session}/track/{s.name}/vertices.npz" for s in session_spec(wc.session).rom],
@@ -36,7 +28,7 @@ rule personalize:
         "logs/{session}/personalize/personalize.log",
     benchmark:
         "results/{session}/benchmarks/personalize.tsv"
-    threads: 1
+    threads: 2  # CHOLMOD's supernodal factorization uses both BLAS threads
     resources:
         mem_mb=6000,
     conda:

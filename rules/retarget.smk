@@ -6,17 +6,6 @@
 # results/{session}/track/{sequence}/markers.npz. Params: config["params"]["retarget"]["ribera"]
 # (keys: scripts/retarget.py PARAMS).
 
-RIBERA_METHODS = ["ribera", "ribera_activation", "rbf"]
-
-
-def _ribera_training(wc):
-    return [f"results/{wc.session}/track/{seq.name}/markers.npz" for seq in session_spec(wc.session).rom]
-
-
-def _ribera_neutral_frames(wc):
-    # tracked markers.npz rows start at each sequence's first frame
-    return [int(seq.neutral_frame) - int(seq.start) for seq in session_spec(wc.session).rom]
-
 
 rule retarget_ribera:
     """Transfer the character's blendshapes to the actor's range of motion (sec. 4), then retarget the

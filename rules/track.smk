@@ -3,37 +3,6 @@
 # Needs from the reconstruct rules: results/{session}/reconstruct/{sequence}/depth/{frame:06d}.npz.
 
 
-def _track_images(session, seq_name, frames):
-    spec = session_spec(session)
-    return [str(spec.rom_image(seq_name, cam, f)) for cam in spec.cameras for f in frames]
-
-
-def _track_neutral_inputs(wc):
-    spec = session_spec(wc.session)
-    seq = spec.rom[0]
-    return {
-        "session_yaml": f"{session_dir(wc.session)}/session.yaml",
-        "cameras": f"results/{wc.session}/calib/cameras.json",
-        "images": _track_images(wc.session, seq.name, [seq.neutral_frame]),
-        "depth": f"results/{wc.session}/reconstruct/{seq.name}/depth/{seq.neutral_frame:06d}.npz",
-    }
-
-
-def _track_sequence_inputs(wc):
-    spec = session_spec(wc.session)
-    seq = next(s for s in spec.rom if s.name == wc.sequence)
-    frames = [f for f in seq.frames if f >= seq.neutral_frame]
-    anchor = spec.rom[0]
-    return {
-        "session_yaml": f"{session_dir(wc.session)}/session.yaml",
-        "cameras": f"results/{wc.session}/calib/cameras.json",
-        "neutral": f"results/{wc.session}/track/neutral.npz",
-        "images": _track_images(wc.session, seq.name, frames),
-        "depth": [f"results/{wc.session}/reconstruct/{seq.name}/depth/{f:06d}.npz" for f in frames],
-        "anchor_depth": f"results/{wc.session}/reconstruct/{anchor.name}/depth/{anchor.neutral_frame:06d}.npz",
-    }
-
-
 rule track_neutral:
     input:
         unpack(_track_neutral_inputs),
