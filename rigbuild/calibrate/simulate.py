@@ -1,9 +1,12 @@
-"""Synthetic board observations with exact ground truth (for solver tests and the benchmark).
+"""Synthetic calibration data with exact ground truth (for tests and the benchmark).
 
-Projects ``BoardSpec.corner_points()`` through known :class:`Camera` objects at known board poses and
-adds Gaussian pixel noise; the result has the same type as image detections
-(camera -> view key -> :class:`Detection`), so it runs through the same calibration code. Images are not
-rendered here (that is ``rigbuild.render``); this isolates the solver from the detector.
+- :func:`simulate_detections` projects ``BoardSpec.corner_points()`` through known :class:`Camera` objects
+  at known board poses and adds Gaussian pixel noise; the result has the same type as image detections
+  (camera -> view key -> :class:`Detection`), so it runs through the same calibration code and isolates
+  the solver from the detector.
+- :func:`render_calibration_session` writes the calibration images of a synthetic session rendered by the
+  project renderer (``rigbuild.render.board``) exactly as ``rigbuild.synth.session.generate_session``
+  does, without the ROM images, performances and rigs: the image-based tests and the benchmark use it.
 """
 
 from __future__ import annotations
@@ -95,3 +98,82 @@ def simulate_detections(cameras: list[Camera], board: BoardSpec, poses: list[tup
             noisy = uv[ok] + rng.normal(0.0, noise_px, (int(ok.sum()), 2))
             out[cam.id][str(k)] = Detection(ids[ok], noisy)
     return out
+
+
+# ------------------------------------------------------------------ rendered calibration sessions
+def render_calibration_session(folder, name: str, synthetic: dict | None, target=None,
+                               render_options: dict | None = None) -> dict:
+    """Write the calibration part of a synthetic session, rendered by the project renderer.
+
+    The same functions and seeds as :func:`rigbuild.synth.session.generate_session` (``make_camera_rig``
+    aimed at the actor's face centre, ``make_board_poses``, ``render_board``), so ``calib/<cam>/<n>.png``
+    and ``ground_truth/cameras.json`` are identical to the generator's for the same ``synthetic`` block;
+    only the ROM images, performances and rigs are skipped (``session.yaml`` lists no sequences).
+
+    Parameters
+    ----------
+    folder : session folder to write (``session.yaml``, ``calib/<cam>/<n>.png``,
+        ``ground_truth/cameras.json``, ``ground_truth/board_poses.npz``).
+    name : session name.
+    synthetic : the ``synthetic:`` block of a config entry (defaults from ``SYNTH_DEFAULTS``).
+    target : (3,) camera look-at point, mm (None: the actor's face centre, as the generator computes it;
+        giving it skips building the actor rig, for fast tests).
+    render_options : extra keyword arguments for ``render_board`` (e.g. ``msaa``); None = the generator's.
+
+    Returns
+    -------
+    dict with ``cameras`` (ground-truth :class:`Camera` list), ``poses`` [(R (3, 3), t (3,) mm)],
+    ``seen_by`` (per pose, camera ids that see it fully), ``params`` (the filled synthetic block),
+    ``seconds`` (render time).
+    """
+    import time
+    from pathlib import Path
+
+    import cv2
+
+    from rigbuild.io.atomic import atomic_path, save_npz
+    from rigbuild.io.cameras import write_cameras
+    from rigbuild.render.board import render_board
+    from rigbuild.session import session_from_dict, write_session
+    from rigbuild.synth.rig_layout import make_board_poses, make_camera_rig
+    from rigbuild.synth.session import plan_session, synth_params
+
+    folder = Path(folder)
+    p = synth_params(synthetic)
+    plan = plan_session(name, synthetic)
+    plan["rom"], plan["performances"] = [], []
+    spec = session_from_dict(plan, folder)
+    seed = int(p["seed"])
+    if target is None:
+        from rigbuild.io.rigs import load_rig
+        from rigbuild.paths import ict_dir
+        from rigbuild.synth.actor import make_actor_rig
+
+        template = load_rig(p["template_rig"])
+        actor, _ = make_actor_rig(template, seed=seed, identity_folder=ict_dir() if p["template_rig"] == "ict" else None,
+                                  intensity_range=tuple(p["actor"]["intensity_range"]),
+                                  asymmetry=p["actor"]["asymmetry"], crosstalk=p["actor"]["crosstalk"],
+                                  warp=p["actor"]["warp"])
+        target = actor.neutral[actor.face_vertices].mean(0)
+    target = np.asarray(target, dtype=np.float64)
+    cameras = make_camera_rig(n_cameras=len(spec.cameras), width=spec.width, height=spec.height,
+                              distance_mm=float(p["camera_distance_mm"]), arc_deg=tuple(p["camera_arc_deg"]),
+                              rows=int(p["camera_rows"]), target=target,
+                              distortion_scale=float(p["distortion_scale"]), seed=seed)
+    poses, seen_by = make_board_poses(cameras, spec.board, n_poses=int(p["calib_poses"]), seed=seed + 1,
+                                      center=target)
+    t0 = time.perf_counter()
+    for cam in cameras:
+        for n, (Rb, tb) in enumerate(poses):
+            img = render_board(cam, spec.board, Rb, tb, noise_sigma=float(p["noise_sigma"]), seed=seed * 1000 + n,
+                               **(render_options or {}))
+            path = folder / "calib" / cam.id / f"{n}.png"
+            with atomic_path(path, suffix=".png") as tmp:
+                if not cv2.imwrite(str(tmp), np.ascontiguousarray(img[..., ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+                    raise OSError(f"could not write {path}")
+    seconds = time.perf_counter() - t0
+    write_session(plan, folder)
+    write_cameras(folder / "ground_truth" / "cameras.json", cameras, session=name)
+    save_npz(folder / "ground_truth" / "board_poses.npz", R=np.array([r for r, _ in poses]),
+             t=np.array([t for _, t in poses]))
+    return {"cameras": cameras, "poses": poses, "seen_by": seen_by, "params": p, "seconds": seconds}

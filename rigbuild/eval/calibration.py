@@ -66,3 +66,41 @@ def compare_cameras(estimated: Sequence[Camera], truth: Sequence[Camera]) -> dic
         "distortion_error_px": float(max(distortion_error_px(e, g) for e, g in zip(est, tru))),
         "n_cameras": len(est),
     }
+
+
+def corner_localisation_errors(detections, truth: Sequence[Camera], board, poses) -> dict[str, np.ndarray]:
+    """Detected corners minus the true projections of the board corners (synthetic sessions).
+
+    detections : camera id -> view key (``"0"``, ``"1"``, ... = index into ``poses``) -> Detection
+        (:func:`rigbuild.calibrate.detect.detect_images`).
+    truth : ground-truth cameras; board : :class:`rigbuild.session.BoardSpec`;
+    poses : [(R (3, 3), t (3,) mm)] board-to-world poses (``ground_truth/board_poses.npz``).
+
+    Returns dict with ``errors`` (N, 2) px (detected - ``camera.project`` of the true corner), ``camera``
+    (N,) camera index and ``view_angle_deg`` (N,) angle between the board normal and the viewing ray to
+    the corner (0 = frontal), for every detected corner.
+    """
+    pts, _ = board.corner_points()
+    errs, cam_idx, angles = [], [], []
+    for ci, cam in enumerate(truth):
+        for key, det in detections.get(cam.id, {}).items():
+            if len(det) == 0:
+                continue
+            R, t = np.asarray(poses[int(key)][0]), np.asarray(poses[int(key)][1])
+            X = pts[det.ids] @ R.T + t
+            errs.append(det.corners - cam.project(X))
+            cam_idx.append(np.full(len(det), ci))
+            ray = X - cam.center
+            angles.append(np.degrees(np.arccos(np.clip(np.abs(ray @ R[:, 2]) / np.linalg.norm(ray, axis=1), 0, 1))))
+    if not errs:
+        return {"errors": np.zeros((0, 2)), "camera": np.zeros(0, np.int64), "view_angle_deg": np.zeros(0)}
+    return {"errors": np.vstack(errs), "camera": np.concatenate(cam_idx), "view_angle_deg": np.concatenate(angles)}
+
+
+def corner_error_summary(errors: np.ndarray) -> dict[str, float]:
+    """Summary of (N, 2) corner errors, px: ``rms`` (of the 2-D error), ``bias_u``, ``bias_v`` (means),
+    ``p99``, ``max`` (of the 2-D error norm) and ``n``."""
+    e = np.asarray(errors, dtype=np.float64).reshape(-1, 2)
+    n = np.linalg.norm(e, axis=1)
+    return {"rms": float(np.sqrt(np.mean(n ** 2))), "bias_u": float(e[:, 0].mean()), "bias_v": float(e[:, 1].mean()),
+            "p99": float(np.percentile(n, 99)), "max": float(n.max()), "n": int(len(e))}
