@@ -290,6 +290,9 @@ def test_same_seed_gives_identical_images(scene):
     assert 1.5 < noise.std() < 2.5
     geo = render_mesh(cam, scene, backend="gl", with_color=False)
     assert np.array_equal(geo.tri_id, a.tri_id) and np.all(geo.color == 128)
+    col = render_mesh(cam, scene, noise_sigma=2.0, seed=5, backend="gl", with_geometry=False)
+    assert col.color.tobytes() == a.color.tobytes()  # colour-only renders are the same pixels
+    assert np.all(col.tri_id == -1) and np.all(np.isnan(col.depth))
     e1 = render_mesh(cam, scene, noise_sigma=2.0, seed=5, backend="embree")
     e2 = render_mesh(cam, scene, noise_sigma=2.0, seed=5, backend="embree")
     assert e1.color.tobytes() == e2.color.tobytes()

@@ -134,5 +134,5 @@ def render_board(
     if light_dir is None:
         light_dir = camera.center - centre
     res = render_mesh(camera, mesh, light_dir=light_dir, ambient=ambient, background=background,
-                      noise_sigma=noise_sigma, seed=seed, msaa=msaa, backend=backend)
+                      noise_sigma=noise_sigma, seed=seed, msaa=msaa, backend=backend, with_geometry=False)
     return res.color

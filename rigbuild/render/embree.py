@@ -120,6 +120,7 @@ def render_mesh(
     seed: int | None = None,
     msaa: bool = True,
     with_color: bool = True,
+    with_geometry: bool = True,
 ) -> RenderResult:
     """Render ``mesh`` seen by ``camera`` by ray casting (same signature and model as the GL renderer).
 

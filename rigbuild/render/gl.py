@@ -349,6 +349,7 @@ def render_mesh(
     seed: int | None = None,
     msaa: bool = True,
     with_color: bool = True,
+    with_geometry: bool = True,
 ) -> RenderResult:
     """Render ``mesh`` seen by ``camera`` (with its lens distortion) by rasterization on EGL/llvmpipe.
 
@@ -363,6 +364,7 @@ def render_mesh(
     seed : noise seed (None: derived from the camera id, so renders are reproducible).
     msaa : 4x multisampling for the colour pass (depth/id/bary never multisample).
     with_color : False skips the colour pass (``color`` is the plain background).
+    with_geometry : False skips the id pass and the exact resolve (depth NaN, tri_id -1, bary 0).
 
     Returns
     -------
@@ -392,16 +394,17 @@ def render_mesh(
 
     buffers = []
     try:
-        # ---- id pass
         vbo_pos = ctx.buffer(pos.tobytes())
         buffers.append(vbo_pos)
-        gl.id_prog["proj"].write(proj)
-        vao_id = ctx.vertex_array(gl.id_prog, [(vbo_pos, "3f", "in_pos")])
-        buffers.append(vao_id)
-        id_fbo.use()
-        id_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        vao_id.render(gl.moderngl.TRIANGLES)
-        pin_ids = np.frombuffer(id_fbo.read(components=1, dtype="i4"), dtype=np.int32).reshape(Hp, Wp)
+        pin_ids = None
+        if with_geometry:  # ---- id pass
+            gl.id_prog["proj"].write(proj)
+            vao_id = ctx.vertex_array(gl.id_prog, [(vbo_pos, "3f", "in_pos")])
+            buffers.append(vao_id)
+            id_fbo.use()
+            id_fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+            vao_id.render(gl.moderngl.TRIANGLES)
+            pin_ids = np.frombuffer(id_fbo.read(components=1, dtype="i4"), dtype=np.int32).reshape(Hp, Wp)
         # ---- colour pass
         pin_rgb = None
         if with_color:
@@ -418,7 +421,13 @@ def render_mesh(
     else:
         color = cv2.remap(pin_rgb, map_x, map_y, interpolation=cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_CONSTANT, borderValue=tuple(bg.tolist()))
-    depth, tri_id, bary = _resolve_gl(gl, camera, Kp, pin_ids, tri_cam, mesh.faces, map_x, map_y, xy)
+    if with_geometry:
+        depth, tri_id, bary = _resolve_gl(gl, camera, Kp, pin_ids, tri_cam, mesh.faces, map_x, map_y, xy)
+    else:
+        H, W = camera.height, camera.width
+        depth = np.full((H, W), np.nan, np.float32)
+        tri_id = np.full((H, W), -1, np.int32)
+        bary = np.zeros((H, W, 3), np.float32)
     return RenderResult(finish_color(color, noise_sigma, camera, seed), depth, tri_id, bary)
 
 

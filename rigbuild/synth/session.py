@@ -205,7 +205,7 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
             mesh = TexturedMesh(verts[i], actor.faces, actor.uvs, actor.face_uvs, texture, dot_centers=dots)
             for cam in cameras:
                 res = render_mesh(cam, mesh, noise_sigma=float(p["noise_sigma"]), msaa=bool(p["msaa"]),
-                                  seed=seed * 7919 + s * 1000 + i)
+                                  seed=seed * 7919 + s * 1000 + i, with_geometry=False)
                 _write_png(spec.rom_image(seq.name, cam.id, frame), res.color)
                 n_images += 1
         save_npz(gt / "rom" / f"{seq.name}.npz", vertices=verts.astype(np.float32), weights=Wseq.astype(np.float32),
