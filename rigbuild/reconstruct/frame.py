@@ -1,0 +1,232 @@
+"""One frame: images of all cameras -> filtered depth/confidence maps, oriented fused cloud, surface."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, fields
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from rigbuild.camera import Camera
+from rigbuild.errors import InputError
+from rigbuild.reconstruct.filter import _map_views, consistency_filter, views_within_angle
+from rigbuild.reconstruct.fuse import (crop_mesh, keep_components, normalize_rows, pixel_normals, poisson_mesh, robust_bbox,
+                                       tsdf_mesh, voxel_average)
+from rigbuild.reconstruct.masks import foreground_mask, image_problem
+from rigbuild.reconstruct.stereo import (StereoParams, auto_depth_range, compute_depth_map, select_neighbours,
+                                         to_gray_float, undistort_view)
+
+
+@dataclass
+class ReconstructParams:
+    """All parameters of the stage (``config["params"]["reconstruct"]``; unknown keys are an error).
+
+    stereo : :class:`StereoParams` (its fields are given flat in the config).
+    mask_threshold : background threshold on the blurred grey image in [0, 1] (0 = no mask).
+    mask_dilate_px, mask_erode_px : morphological close of the mask (see ``foreground_mask``).
+    filter_max_angle_deg, filter_views : each view's depth is checked against at most ``filter_views``
+        views whose optical axes are within ``filter_max_angle_deg`` (nearest first).
+    consistency_abs_mm, consistency_rel : depth agreement tolerance ``abs + rel * z``.
+    min_views : views (reference included) that must agree for a pixel to be kept.
+    point_voxel_mm : voxel size of the fused point cloud (averaging); 0 keeps every fused pixel.
+    surface : ``"tsdf"`` (open surface of the seen region) or ``"poisson"`` (closed surface).
+    tsdf_voxel_mm, tsdf_trunc_voxels : TSDF resolution and truncation.
+    poisson_depth, poisson_density_quantile : Poisson octree depth and density trimming (0 = closed).
+    surface_voxel_mm : the fused points are averaged in voxels of this size before Poisson.
+    poisson_scale : Poisson domain / point bounding box (>= 2 lets a closed surface close inside it).
+    crop_distance_mm : mesh parts farther than this from the fused points are removed (0 = no crop: the
+        largest component of the Poisson surface is kept, a closed surface of the object).
+    bbox_mm : [[x0, y0, z0], [x1, y1, z1]] world box (head / object) points are cropped to; None = the
+        robust bounding box of the fused points.
+    on_bad_frame : ``"skip"`` (warn, record, go on) or ``"fail"`` (raise) for missing/black/saturated views.
+    threads : views processed in parallel by stereo and filtering (set it to the job's cores).
+    """
+
+    stereo: StereoParams = field(default_factory=StereoParams)
+    mask_threshold: float = 0.08
+    mask_dilate_px: int = 10
+    mask_erode_px: int = 7
+    filter_max_angle_deg: float = 70.0
+    filter_views: int = 4
+    consistency_abs_mm: float = 0.5
+    consistency_rel: float = 0.002
+    min_views: int = 2
+    point_voxel_mm: float = 0.5
+    surface: str = "poisson"
+    tsdf_voxel_mm: float = 1.0
+    tsdf_trunc_voxels: float = 4.0
+    poisson_depth: int = 8
+    surface_voxel_mm: float = 1.0
+    poisson_scale: float = 1.1
+    poisson_density_quantile: float = 0.0
+    crop_distance_mm: float = 1.5
+    bbox_mm: list | None = None
+    on_bad_frame: str = "skip"
+    threads: int = 2
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None, source: str = "config params.reconstruct") -> "ReconstructParams":
+        """Flat dict (stereo fields and the fields above) -> params; unknown keys raise InputError."""
+        d = dict(d or {})
+        own = {f.name for f in fields(cls)} - {"stereo"}
+        st = {f.name for f in fields(StereoParams)}
+        unknown = sorted(set(d) - own - st)
+        if unknown:
+            raise InputError(f"unknown reconstruct parameters {unknown}", path=source,
+                             fix=f"use only {sorted(own | st)}")
+        p = cls(stereo=StereoParams.from_dict({k: v for k, v in d.items() if k in st}, source),
+                **{k: v for k, v in d.items() if k in own})
+        if p.surface not in ("tsdf", "poisson"):
+            raise InputError(f"surface must be 'tsdf' or 'poisson', got {p.surface!r}", path=source)
+        if p.on_bad_frame not in ("skip", "fail"):
+            raise InputError(f"on_bad_frame must be 'skip' or 'fail', got {p.on_bad_frame!r}", path=source)
+        if p.min_views < 1:
+            raise InputError(f"min_views must be >= 1, got {p.min_views}", path=source)
+        return p
+
+
+@dataclass
+class FrameReconstruction:
+    """Result of :func:`reconstruct_frame` (all world quantities in mm).
+
+    cameras : pinhole cameras (distortion removed, same K, R, t) of the depth grids.
+    depth : (N, H, W) float32 filtered camera z (0 = none); confidence : (N, H, W) float32 NCC in [0, 1]
+        (0 where no depth); n_views : (N, H, W) uint8 agreeing views; mask : (N, H, W) bool foreground.
+    points, normals : (P, 3) fused oriented cloud; colors : (P, 3) float in [0, 1] (RGB).
+    mesh_vertices (V, 3), mesh_faces (F, 3) : the surface, cropped to the head / object.
+    stats : coverage per view (fraction of foreground pixels with depth), counts and timings.
+    """
+
+    cameras: list[Camera]
+    depth: np.ndarray
+    confidence: np.ndarray
+    n_views: np.ndarray
+    mask: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    colors: np.ndarray
+    mesh_vertices: np.ndarray
+    mesh_faces: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+
+def check_views(images: Sequence[np.ndarray | None], cameras: Sequence[Camera], names: Sequence[str] | None = None) -> list[str]:
+    """Problems that make a frame unusable: one string per missing, mis-sized, black or saturated view."""
+    problems = []
+    for k, (img, cam) in enumerate(zip(images, cameras)):
+        name = names[k] if names is not None else cam.id
+        if img is None:
+            problems.append(f"view {cam.id}: missing image {name}")
+            continue
+        if img.shape[0] != cam.height or img.shape[1] != cam.width:
+            problems.append(f"view {cam.id}: image {name} is {img.shape[1]}x{img.shape[0]}, camera is "
+                            f"{cam.width}x{cam.height}")
+            continue
+        why = image_problem(to_gray_float(img))
+        if why:
+            problems.append(f"view {cam.id}: image {name} is {why}")
+    return problems
+
+
+def _rgb01(img: np.ndarray) -> np.ndarray:
+    a = np.asarray(img)
+    scale = 255.0 if a.dtype == np.uint8 else (65535.0 if a.dtype == np.uint16 else 1.0)
+    a = a.astype(np.float32) / scale
+    if a.ndim == 2:
+        return np.repeat(a[..., None], 3, axis=2)
+    return a[..., ::-1][..., :3]  # OpenCV BGR -> RGB
+
+
+def reconstruct_frame(images: Sequence[np.ndarray | None], cameras: Sequence[Camera], params: ReconstructParams,
+                      names: Sequence[str] | None = None) -> FrameReconstruction:
+    """Multi-view stereo of one frame.
+
+    Parameters
+    ----------
+    images : per camera the original (distorted) image, (H, W) or (H, W, 3) BGR, uint8/uint16/float;
+        None marks a missing view.
+    cameras : calibrated cameras (mm), same order.
+    names : per view a label for error messages (e.g. the image path).
+
+    Raises
+    ------
+    InputError : a view is missing, mis-sized, all black or saturated (the caller applies ``on_bad_frame``).
+    """
+    problems = check_views(images, cameras, names)
+    if problems:
+        raise InputError("unusable frame: " + "; ".join(problems),
+                         fix="re-export the frame's images or exclude the frame (on_bad_frame: skip)")
+    t0, c0 = time.perf_counter(), time.process_time()
+    und = [undistort_view(img, cam) for img, cam in zip(images, cameras)]
+    pcams = [c for _, c in und]
+    gray = [to_gray_float(u) for u, _ in und]
+    sp = params.stereo
+    masks = [foreground_mask(g, params.mask_threshold, dilate_px=params.mask_dilate_px,
+                             erode_px=params.mask_erode_px) for g in gray]
+    nbrs = select_neighbours(pcams, sp.n_neighbours, sp.min_angle_deg, sp.max_angle_deg)
+    t1, c1 = time.perf_counter(), time.process_time()
+    def stereo_view(i: int):
+        rng = sp.depth_range_mm or auto_depth_range(pcams[i], pcams, sp.auto_depth_radius_mm)
+        return compute_depth_map(i, gray, pcams, nbrs[i], sp, mask=masks[i], depth_range=rng)
+
+    results = _map_views(stereo_view, len(pcams), params.threads)
+    raw = [r.depth for r in results]
+    scores = [r.score for r in results]
+    t2, c2 = time.perf_counter(), time.process_time()
+    cons = consistency_filter(raw, pcams, views_within_angle(pcams, params.filter_max_angle_deg,
+                                                             params.filter_views),
+                              params.consistency_abs_mm, params.consistency_rel, params.min_views,
+                              params.threads)
+    pts, nrm, col = [], [], []
+    for i, cam in enumerate(pcams):
+        vv, uu = cons.pixels[i][:, 0], cons.pixels[i][:, 1]
+        n = pixel_normals(cons.point_maps[i], cam, vv, uu)
+        pts.append(cons.points[i])
+        nrm.append(n)
+        col.append(_rgb01(und[i][0])[vv, uu])
+    P = np.concatenate(pts) if pts else np.zeros((0, 3))
+    N = np.concatenate(nrm) if nrm else np.zeros((0, 3))
+    C = np.concatenate(col) if col else np.zeros((0, 3))
+    P, N, C = voxel_average(P, params.point_voxel_mm, N, C)
+    N = normalize_rows(N)
+    good = np.linalg.norm(N, axis=1) > 0
+    if good.any():
+        lo, hi = np.asarray(params.bbox_mm, float) if params.bbox_mm is not None else robust_bbox(P[good])
+        good &= np.all((P >= lo) & (P <= hi), axis=1)
+    P, N, C = P[good], N[good], C[good]
+    t3, c3 = time.perf_counter(), time.process_time()
+    if len(P) < 100:
+        V, F = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    else:
+        bbox = (P.min(axis=0) - 5.0, P.max(axis=0) + 5.0)
+        if params.surface == "tsdf":
+            depths_in = [np.where(d > 0, d, 0).astype(np.float32) for d in cons.depth]
+            V, F = tsdf_mesh(depths_in, pcams, bbox, params.tsdf_voxel_mm, params.tsdf_trunc_voxels)
+        else:
+            Ps, Ns = voxel_average(P, params.surface_voxel_mm, N)
+            V, F = poisson_mesh(Ps, normalize_rows(Ns), params.poisson_depth, params.poisson_density_quantile,
+                                params.poisson_scale)
+        if params.crop_distance_mm > 0 and len(F):
+            V, F = crop_mesh(V, F, Ps if params.surface == "poisson" else P, params.crop_distance_mm)
+        elif len(F):
+            V, F = keep_components(V, F, largest_only=True)  # the closed surface of the object
+    t4, c4 = time.perf_counter(), time.process_time()
+    depth = np.stack(cons.depth)
+    conf = np.where(depth > 0, np.clip(np.stack(scores), 0, 1), 0).astype(np.float32)
+    mask = np.stack(masks)
+    fg = np.maximum(mask.sum(axis=(1, 2)), 1)
+    coverage = (depth > 0).sum(axis=(1, 2)) / fg
+    stats = {
+        "coverage": {c.id: float(x) for c, x in zip(pcams, coverage)},
+        "raw_coverage": {c.id: float((r > 0).sum() / f) for c, r, f in zip(pcams, raw, fg)},
+        "neighbours": {c.id: [pcams[j].id for j in nb] for c, nb in zip(pcams, nbrs)},
+        "n_points": int(len(P)),
+        "n_mesh_vertices": int(len(V)),
+        "n_mesh_faces": int(len(F)),
+        "seconds": {"prepare": t1 - t0, "stereo": t2 - t1, "filter_fuse": t3 - t2, "surface": t4 - t3,
+                    "total": t4 - t0},
+        "cpu_seconds": {"prepare": c1 - c0, "stereo": c2 - c1, "filter_fuse": c3 - c2, "surface": c4 - c3,
+                        "total": c4 - c0},
+    }
+    return FrameReconstruction(pcams, depth, conf, np.stack(cons.n_views), mask, P, N, C, V, F, stats)
