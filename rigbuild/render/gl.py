@@ -300,18 +300,44 @@ def pinhole_cover(camera: Camera, margin: int = PINHOLE_MARGIN_PX):
     """
     xy = pixel_rays(camera)
     K = camera.K
+    valid = _invertible_pixels(camera, xy)
+    if not valid.all():
+        # a fitted distortion polynomial can fold over near the image corners (a calibration that
+        # extrapolates): those pixels have no ray; they render as background
+        xy = np.where(valid[..., None], xy, np.nan)
     u = K[0, 0] * xy[..., 0] + K[0, 1] * xy[..., 1] + K[0, 2]
     v = K[1, 1] * xy[..., 1] + K[1, 2]
-    ox = margin - np.floor(u.min())
-    oy = margin - np.floor(v.min())
-    Wp = int(np.ceil(u.max() + ox)) + margin + 1
-    Hp = int(np.ceil(v.max() + oy)) + margin + 1
+    ox = margin - np.floor(np.nanmin(u))
+    oy = margin - np.floor(np.nanmin(v))
+    Wp = int(np.ceil(np.nanmax(u) + ox)) + margin + 1
+    Hp = int(np.ceil(np.nanmax(v) + oy)) + margin + 1
     if Wp > 3 * camera.width or Hp > 3 * camera.height:
         raise ValueError(f"camera {camera.id}: distortion too strong to render (pinhole cover {Wp}x{Hp})")
     Kp = K.copy()
     Kp[0, 2] += ox
     Kp[1, 2] += oy
-    return Kp, (Wp, Hp), (u + ox).astype(np.float32), (v + oy).astype(np.float32), xy
+    map_x = np.nan_to_num((u + ox).astype(np.float32), nan=-1e6)
+    map_y = np.nan_to_num((v + oy).astype(np.float32), nan=-1e6)
+    return Kp, (Wp, Hp), map_x, map_y, xy
+
+
+def _invertible_pixels(camera: Camera, xy: np.ndarray, tol_px: float = 0.05) -> np.ndarray:
+    """(H, W) bool: pixels whose undistorted ray distorts back onto the pixel (within ``tol_px``) and
+    lies where the radial distortion is still monotonic."""
+    from rigbuild.camera import distort_normalized
+
+    H, W = camera.height, camera.width
+    xd, yd = distort_normalized(xy[..., 0], xy[..., 1], camera.dist)
+    K = camera.K
+    u = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+    v = K[1, 1] * yd + K[1, 2]
+    gu, gv = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    ok = np.hypot(u - gu, v - gv) < tol_px
+    k1, k2, _, _, k3 = camera.dist
+    r2 = (xy ** 2).sum(-1)
+    # d(r * (1 + k1 r^2 + k2 r^4 + k3 r^6)) / dr > 0
+    ok &= 1 + 3 * k1 * r2 + 5 * k2 * r2 ** 2 + 7 * k3 * r2 ** 3 > 0
+    return ok & np.isfinite(r2)
 
 
 def gl_projection(Kp: np.ndarray, width: int, height: int, near: float, far: float) -> np.ndarray:
