@@ -12,6 +12,7 @@ from typing import Sequence
 import numpy as np
 
 from rigbuild.camera import Camera
+from rigbuild.geometry.mesh import vertex_normals  # noqa: F401 (re-exported)
 
 
 def _raycasting_scene(vertices: np.ndarray, faces: np.ndarray):
@@ -21,16 +22,6 @@ def _raycasting_scene(vertices: np.ndarray, faces: np.ndarray):
     scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
                         o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)))
     return scene
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) area-weighted unit vertex normals."""
-    fn = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
-    n = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(n, faces[:, k], fn)
-    L = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.where(L > 0, L, 1)
 
 
 def visible_counts(vertices: np.ndarray, faces: np.ndarray, cameras: Sequence[Camera], query: np.ndarray,

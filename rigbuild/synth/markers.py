@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from rigbuild.errors import InputError
+from rigbuild.geometry.mesh import vertex_normals  # noqa: F401 (re-exported)
 
 MARKER_DIR = Path(__file__).resolve().parent.parent / "data" / "markers"
 
@@ -136,17 +137,6 @@ def marker_targets(landmark_points: np.ndarray) -> tuple[list[str], np.ndarray]:
             off[0] = -off[0]
         out[m] = w @ lm[idx] + off
     return names, out
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) unit area-weighted vertex normals of a triangle mesh (vertices (V, 3), faces (F, 3))."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
 def snap_to_surface(
