@@ -1,0 +1,146 @@
+"""Ground-truth evaluation of the blendshape personalization (synthetic sessions only).
+
+Metrics (``personalization.<key>`` in metrics.json):
+
+- ``residual_reduction``: ``1 - rms_personalized / rms_initial`` of the fit residual on the fitting
+  frames (weights and rigid motion fitted to each rig; RMS of per-vertex distances over the
+  confident vertices, mm);
+- ``heldout_residual_reduction``: the same on held-out frames not used for the shape update;
+- ``shape_error_reduction``: ``1 - rms(D - D_gt) / rms(D* - D_gt)`` over the face region (mm);
+- ``weight_mae``: mean |w - w_gt| over all fitting frames and shapes;
+- ``min_shape_cosine``: min over shapes of the cosine between the personalized and the ground-truth
+  displacement field on the face region.
+
+Blendshape weights and shape amplitudes share a per-shape scale that no fitting data determines
+(``(a D_k, w_k / a)`` fit identically): the ``*_gauge`` variants first scale each shape by its
+least-squares factor onto the ground truth (and its weights by the inverse) and are reported next to
+the raw numbers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def rms_shape_error(deltas: np.ndarray, gt_deltas: np.ndarray, vertices: np.ndarray | None = None) -> float:
+    """RMS per-vertex distance (mm) between (K, V, 3) delta sets over ``vertices`` (default all)."""
+    d = deltas if vertices is None else deltas[:, vertices]
+    g = gt_deltas if vertices is None else gt_deltas[:, vertices]
+    return float(np.sqrt(((d - g) ** 2).sum(-1).mean()))
+
+
+def shape_cosines(deltas: np.ndarray, gt_deltas: np.ndarray, vertices: np.ndarray | None = None) -> np.ndarray:
+    """(K,) cosine similarity of each shape's displacement field with the ground truth's."""
+    d = (deltas if vertices is None else deltas[:, vertices]).reshape(deltas.shape[0], -1)
+    g = (gt_deltas if vertices is None else gt_deltas[:, vertices]).reshape(gt_deltas.shape[0], -1)
+    den = np.linalg.norm(d, axis=1) * np.linalg.norm(g, axis=1)
+    return np.where(den > 0, (d * g).sum(1) / np.where(den > 0, den, 1.0), 0.0)
+
+
+def gauge_scales(deltas: np.ndarray, gt_deltas: np.ndarray, vertices: np.ndarray | None = None) -> np.ndarray:
+    """(K,) least-squares factors ``a_k = argmin ||a D_k - D_gt,k||`` over ``vertices``."""
+    d = (deltas if vertices is None else deltas[:, vertices]).reshape(deltas.shape[0], -1)
+    g = (gt_deltas if vertices is None else gt_deltas[:, vertices]).reshape(gt_deltas.shape[0], -1)
+    dd = (d * d).sum(1)
+    return np.where(dd > 0, (d * g).sum(1) / np.where(dd > 0, dd, 1.0), 1.0)
+
+
+def weight_mae(weights: np.ndarray, gt_weights: np.ndarray) -> float:
+    """Mean absolute weight error over finite entries of (F, K) arrays."""
+    e = np.abs(np.asarray(weights) - np.asarray(gt_weights))
+    return float(np.nanmean(e))
+
+
+def personalization_metrics(
+    initial_deltas: np.ndarray,
+    deltas: np.ndarray,
+    gt_deltas: np.ndarray,
+    weights: np.ndarray,
+    gt_weights: np.ndarray,
+    residual_initial_mm: float,
+    residual_final_mm: float,
+    face_vertices: np.ndarray | None = None,
+    heldout_residual_initial_mm: float | None = None,
+    heldout_residual_final_mm: float | None = None,
+    heldout_weights: np.ndarray | None = None,
+    heldout_gt_weights: np.ndarray | None = None,
+) -> dict:
+    """All personalization metrics as a flat dict (keys without the ``personalization.`` prefix).
+
+    initial_deltas (D*), deltas (personalized), gt_deltas: (K, V, 3) mm; weights / gt_weights (F, K)
+    on the fitting frames; residuals in mm (RMS); face_vertices (R,) for the shape metrics.
+    """
+    e0 = rms_shape_error(initial_deltas, gt_deltas, face_vertices)
+    e1 = rms_shape_error(deltas, gt_deltas, face_vertices)
+    a0 = gauge_scales(initial_deltas, gt_deltas, face_vertices)
+    a1 = gauge_scales(deltas, gt_deltas, face_vertices)
+    e0g = rms_shape_error(a0[:, None, None] * initial_deltas, gt_deltas, face_vertices)
+    e1g = rms_shape_error(a1[:, None, None] * deltas, gt_deltas, face_vertices)
+    cos = shape_cosines(deltas, gt_deltas, face_vertices)
+    cos0 = shape_cosines(initial_deltas, gt_deltas, face_vertices)
+    out = {
+        "residual_initial_mm": residual_initial_mm,
+        "residual_final_mm": residual_final_mm,
+        "residual_reduction": 1.0 - residual_final_mm / residual_initial_mm if residual_initial_mm > 0 else 0.0,
+        "shape_error_initial_mm": e0,
+        "shape_error_final_mm": e1,
+        "shape_error_reduction": 1.0 - e1 / e0 if e0 > 0 else 0.0,
+        "shape_error_reduction_gauge": 1.0 - e1g / e0g if e0g > 0 else 0.0,
+        "weight_mae": weight_mae(weights, gt_weights),
+        "weight_mae_gauge": weight_mae(np.asarray(weights) / a1[None, :], gt_weights),
+        "min_shape_cosine": float(cos.min()),
+        "min_shape_cosine_initial": float(cos0.min()),
+        "mean_shape_cosine": float(cos.mean()),
+    }
+    if heldout_residual_initial_mm is not None and heldout_residual_final_mm is not None:
+        out["heldout_residual_initial_mm"] = heldout_residual_initial_mm
+        out["heldout_residual_final_mm"] = heldout_residual_final_mm
+        out["heldout_residual_reduction"] = (1.0 - heldout_residual_final_mm / heldout_residual_initial_mm
+                                             if heldout_residual_initial_mm > 0 else 0.0)
+    if heldout_weights is not None and heldout_gt_weights is not None:
+        out["heldout_weight_mae"] = weight_mae(heldout_weights, heldout_gt_weights)
+    return out
+
+
+def _gt_weights(gt_dir, shape_names: list[str], seqs: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """Ground-truth weights (F, K) for the frames (sequence name, session frame number) from
+    ``ground_truth/rom/<seq>.npz`` (columns reordered to ``shape_names``)."""
+    from pathlib import Path
+
+    out = np.full((len(seqs), len(shape_names)), np.nan)
+    cache: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for i, (s, f) in enumerate(zip(seqs, frames)):
+        s = str(s)
+        if s not in cache:
+            with np.load(Path(gt_dir) / "rom" / f"{s}.npz", allow_pickle=False) as z:
+                names = [str(n) for n in z["shape_names"]]
+                W = z["weights"].astype(np.float64)
+                fr = z["frames"].astype(np.int64) if "frames" in z else np.arange(W.shape[0])
+            cols = [names.index(n) for n in shape_names]
+            cache[s] = (W[:, cols], fr)
+        W, fr = cache[s]
+        hit = np.flatnonzero(fr == int(f))
+        if hit.size:
+            out[i] = W[hit[0]]
+    return out
+
+
+def ground_truth_metrics(gt_dir, shape_names: list[str], initial_deltas: np.ndarray, deltas: np.ndarray,
+                         face_vertices: np.ndarray | None, weights: np.ndarray, seqs: np.ndarray, frames: np.ndarray,
+                         heldout_weights: np.ndarray | None = None, heldout_seqs: np.ndarray | None = None,
+                         heldout_frames: np.ndarray | None = None) -> dict:
+    """GT metrics of a session (``ground_truth/actor_rig.npz`` and ``rom/<seq>.npz``): shape error
+    reduction, cosines and weight MAE as in :func:`personalization_metrics` (residuals are not GT
+    metrics and are left to the caller)."""
+    from pathlib import Path
+
+    from rigbuild.io.rigs import read_rig_npz
+
+    actor = read_rig_npz(Path(gt_dir) / "actor_rig.npz").subset(shape_names)
+    gw = _gt_weights(gt_dir, shape_names, seqs, frames)
+    m = personalization_metrics(initial_deltas, deltas, actor.deltas, weights, gw, 1.0, 1.0, face_vertices)
+    for k in ("residual_initial_mm", "residual_final_mm", "residual_reduction"):
+        m.pop(k)
+    if heldout_weights is not None:
+        m["heldout_weight_mae"] = weight_mae(heldout_weights, _gt_weights(gt_dir, shape_names, heldout_seqs, heldout_frames))
+    return m

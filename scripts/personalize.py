@@ -1,0 +1,44 @@
+"""Snakemake entry point of rule ``personalize``: tracked ROM sequences -> results/{session}/personalize/.
+
+snakemake.input.tracks : results/{session}/track/{sequence}/vertices.npz for every ROM sequence (session order)
+snakemake.output.rig : results/{session}/personalize/rig.npz (rig_obj/, rig.gltf, weights.npz,
+    convergence.png, heatmaps/, objective.json, personalize_metrics.json sit beside it)
+snakemake.params.personalize : config["params"]["personalize"]
+snakemake.params.template_rig : rig spec (params.personalize.template_rig or session.yaml template_rig)
+snakemake.params.sequences : ROM sequence names (order of input.tracks)
+snakemake.params.neutral_frames : {sequence: neutral_frame}
+snakemake.params.session_dir : the session folder (ground_truth/ is read only by rigbuild.eval)
+snakemake.params.metrics : results/{session}/metrics.json
+(no `from __future__` import: Snakemake prepends its preamble to this file)
+"""
+
+
+import logging
+import sys
+from pathlib import Path
+
+
+def main(smk) -> None:
+    from rigbuild.io.rigs import load_rig
+    from rigbuild.paths import ict_dir
+    from rigbuild.personalize.stage import run_personalization
+
+    log_path = smk.log[0] if len(smk.log) else None
+    logging.basicConfig(filename=log_path, level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    logging.captureWarnings(True)
+    try:
+        spec = str(smk.params.template_rig)
+        template = load_rig(ict_dir() if spec == "ict" else spec)
+        tracks = dict(zip(list(smk.params.sequences), list(smk.input.tracks)))
+        metrics = run_personalization(tracks, template, Path(smk.output.rig).parent, dict(smk.params.personalize or {}),
+                                      smk.params.metrics, smk.params.session_dir, dict(smk.params.neutral_frames))
+    except Exception as exc:  # log the user-facing message, then fail the job
+        logging.error("%s", exc)
+        raise
+    logging.info("personalization: %s", metrics)
+
+
+if "snakemake" in globals():
+    main(snakemake)  # noqa: F821
+else:
+    sys.exit("scripts/personalize.py is run by Snakemake (rule personalize)")

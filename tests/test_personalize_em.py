@@ -1,0 +1,305 @@
+"""Personalization (Ma et al. 2016): weight QP, rigid step, shape update, EM loop, bad input.
+
+Small analytic meshes only (fast); the ICT-scale numbers are in tests/test_personalize_ict.py (slow)
+and benchmarks/bench_personalize.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from rigbuild.errors import InputError
+from rigbuild.geometry.deformation_transfer import gradient_operator
+from rigbuild.geometry.sparse_cholesky import SparseCholesky
+from rigbuild.personalize.em import PersonalizeParams, fit_weights_and_rigid, personalize
+from rigbuild.personalize.rigid import fit_frame_rigid, to_rig_frame
+from rigbuild.personalize.shapes import ShapeUpdate
+from rigbuild.personalize.weights import (
+    qp_energy,
+    solve_box_qp_active_set,
+    solve_box_qp_cvxopt,
+    weight_qp,
+)
+
+
+# ----------------------------------------------------------------------------- fixtures
+def grid_mesh(n: int = 12, size: float = 60.0):
+    u = np.linspace(-size / 2, size / 2, n)
+    X, Y = np.meshgrid(u, u, indexing="ij")
+    Z = 0.006 * (X**2 + Y**2)
+    verts = np.stack([X.ravel(), Y.ravel(), -Z.ravel()], 1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return verts, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+def bump(verts, centre, radius, direction):
+    r = np.linalg.norm(verts[:, :2] - np.asarray(centre), axis=1)
+    w = np.clip(1 - (r / radius) ** 2, 0, None) ** 2
+    return w[:, None] * np.asarray(direction, float)[None]
+
+
+def template_shapes(verts):
+    return np.stack([
+        bump(verts, (-12, 8), 16, (0, 0, 4.0)),
+        bump(verts, (12, 8), 16, (0, 1.0, 3.0)),
+        bump(verts, (0, -10), 20, (0, -3.0, 1.0)),
+        bump(verts, (-5, 0), 14, (2.0, 0, 1.0)),
+    ])
+
+
+def rotation(axis, deg):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    a = np.radians(deg)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+
+
+def scene(seed=0, n_seq=6, per=12):
+    """Template = 4 local bumps; actor = the same bumps tilted by 10 degrees and modulated by a smooth
+    left/right asymmetry; frames = ROM-like sequences (neutral -> peak -> neutral of the sequence's own
+    shape plus one partner) with head motion (ground-truth meshes)."""
+    rng = np.random.default_rng(seed)
+    verts, faces = grid_mesh()
+    D0 = template_shapes(verts)
+    K = D0.shape[0]
+    warp = 1 + 0.3 * np.tanh(verts[:, 0] / 15.0)
+    actor = np.stack([(D0[k] @ rotation([1, 0, 0], 10 * (-1) ** k).T) * warp[:, None] for k in range(K)])
+    n_frames = n_seq * per
+    W = np.zeros((n_frames, K))
+    seq = np.repeat(np.arange(n_seq), per)
+    t = np.linspace(0, 1, per)
+    for s in range(n_seq):
+        for k in {s % K, int(rng.integers(K))}:
+            a, b = sorted(rng.uniform(0.1, 0.9, 2))
+            W[s * per:(s + 1) * per, k] = rng.uniform(0.6, 1.0) * np.sin(np.pi * t) ** 2 * (0.5 + t)
+    W = W.clip(0, 1)
+    Rs = np.stack([rotation(rng.normal(size=3), rng.uniform(0, 3)) for _ in range(n_frames)])
+    ts = rng.normal(scale=2.0, size=(n_frames, 3))
+    frames = np.einsum("fij,fvj->fvi", Rs, verts + np.einsum("fk,kvc->fvc", W, actor)) + ts[:, None]
+    return verts, faces, D0, actor, W, Rs, ts, seq, frames
+
+
+# ----------------------------------------------------------------------------- weights QP
+def test_box_qp_diagonal_is_clipped_unconstrained_minimum():
+    H = np.diag([2.0, 1.0, 4.0, 1.0])
+    f = np.array([-1.0, 0.5, -8.0, -0.3])
+    x = solve_box_qp_active_set(H, f)
+    np.testing.assert_allclose(x, [0.5, 0.0, 1.0, 0.3], atol=1e-14)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_box_qp_solvers_agree_and_satisfy_kkt(seed):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(80, 20))
+    b = A @ rng.uniform(-0.5, 1.5, size=20) + rng.normal(scale=0.1, size=80)
+    H, f = weight_qp(A.T @ A, A.T @ b, 0.1, 0.5, [rng.uniform(0, 1, 20)])
+    x1 = solve_box_qp_active_set(H, f, x0=rng.uniform(0, 1, 20))
+    x2 = solve_box_qp_cvxopt(H, f)
+    np.testing.assert_allclose(x1, x2, atol=1e-7)
+    g = H @ x1 + f
+    assert np.all(x1 >= 0) and np.all(x1 <= 1)
+    free = (x1 > 1e-12) & (x1 < 1 - 1e-12)
+    np.testing.assert_allclose(g[free], 0, atol=1e-9)
+    assert np.all(g[x1 <= 1e-12] >= -1e-9) and np.all(g[x1 >= 1 - 1e-12] <= 1e-9)
+    assert qp_energy(H, f, x1) <= qp_energy(H, f, np.clip(x1 + 0.01 * rng.normal(size=20), 0, 1)) + 1e-12
+
+
+def test_weight_qp_energy_matches_the_written_energy():
+    rng = np.random.default_rng(3)
+    D = rng.normal(size=(30, 5))
+    m2 = rng.uniform(0.2, 1, 30)
+    r = rng.normal(size=30)
+    wp, wn = rng.uniform(0, 1, 5), rng.uniform(0, 1, 5)
+    H, f = weight_qp(D.T @ (m2[:, None] * D), D.T @ (m2 * r), 0.1, 0.7, [wp, wn])
+    w = rng.uniform(0, 1, 5)
+    direct = (m2 * (D @ w - r) ** 2).sum() + 0.1 * w.sum() ** 2 + 0.7 * (((w - wp) ** 2).sum() + ((w - wn) ** 2).sum())
+    const = (m2 * r * r).sum() + 0.7 * ((wp**2).sum() + (wn**2).sum())
+    assert 2 * qp_energy(H, f, w) + const == pytest.approx(direct, rel=1e-12)
+
+
+# ----------------------------------------------------------------------------- rigid
+def test_rigid_step_recovers_a_known_motion_with_confidence():
+    rng = np.random.default_rng(1)
+    P = rng.normal(size=(50, 3)) * 20
+    R = rotation([0.2, 1, 0.1], 7)
+    t = np.array([3.0, -1.0, 5.0])
+    Q = P @ R.T + t
+    conf = np.ones(50)
+    Q[:5] += 30.0  # outliers with zero confidence
+    conf[:5] = 0.0
+    R2, t2 = fit_frame_rigid(P, Q, conf)
+    np.testing.assert_allclose(R2, R, atol=1e-12)
+    np.testing.assert_allclose(t2, t, atol=1e-10)
+    np.testing.assert_allclose(to_rig_frame(Q[5:], R2, t2), P[5:], atol=1e-10)
+
+
+# ----------------------------------------------------------------------------- shape update
+def dense_shape_energy_minimizer(b0, Dstar, faces, active, W_hat, conf2, residual, lr, ld, support):
+    """Independent dense construction of eq. 7 (+ neutral column) for one coordinate set."""
+    G = gradient_operator(b0, faces)[:, active].toarray()
+    K1 = W_hat.shape[1]
+    A = len(active)
+    sup = np.vstack([np.ones((1, A), bool), support[:, active]])
+    var = [(j, a) for j in range(K1) for a in range(A) if sup[j, a]]
+    n = len(var)
+    idx = {v: i for i, v in enumerate(var)}
+    H = np.zeros((n, n))
+    B = np.zeros((n, 3))
+    for i_f in range(W_hat.shape[0]):
+        for a in range(A):
+            js = [j for j in range(K1) if sup[j, a]]
+            for j in js:
+                B[idx[j, a]] += conf2[i_f, a] * W_hat[i_f, j] * residual[i_f, a]
+                for l in js:
+                    H[idx[j, a], idx[l, a]] += conf2[i_f, a] * W_hat[i_f, j] * W_hat[i_f, l]
+    GtG = G.T @ G
+    for j in range(K1):
+        ids = [a for a in range(A) if sup[j, a]]
+        for a in ids:
+            for c in ids:
+                H[idx[j, a], idx[j, c]] += lr * GtG[a, c]
+    H += ld * np.eye(n)
+    x = np.linalg.solve(H, B)
+    X = np.zeros((K1, A, 3))
+    for (j, a), i in idx.items():
+        X[j, a] = x[i]
+    return X
+
+
+def test_shape_update_matches_a_dense_solve_of_the_energy():
+    verts, faces = grid_mesh(7, 30.0)
+    D0 = template_shapes(grid_mesh(7, 30.0)[0] * 2.0)  # bumps on a coarser grid
+    support = np.linalg.norm(D0, axis=2) > 0
+    rng = np.random.default_rng(0)
+    active = np.arange(len(verts))
+    F = 6
+    W_hat = np.concatenate([np.ones((F, 1)), rng.uniform(0, 1, (F, D0.shape[0]))], 1)
+    conf2 = rng.uniform(0.3, 1.0, (F, len(active)))
+    residual = rng.normal(size=(F, len(active), 3))
+    su = ShapeUpdate(verts, D0, faces, active, lambda_r=0.7, lambda_d=0.2, support=support)
+    X = su.solve(W_hat, conf2, residual)
+    Xd = dense_shape_energy_minimizer(verts, D0, faces, active, W_hat, conf2, residual, 0.7, 0.2, support)
+    np.testing.assert_allclose(X, Xd, atol=1e-9)
+    # local support: D_kv = 0 wherever D*_kv = 0
+    assert np.all(X[1:][~support] == 0)
+    # uniform-confidence fast path gives the same as the general path
+    conf_u = np.ones_like(conf2)
+    X1 = ShapeUpdate(verts, D0, faces, active, 0.7, 0.2, support=support).solve(W_hat, conf_u, residual)
+    Xd1 = dense_shape_energy_minimizer(verts, D0, faces, active, W_hat, conf_u, residual, 0.7, 0.2, support)
+    np.testing.assert_allclose(X1, Xd1, atol=1e-9)
+
+
+def test_constant_bias_goes_into_the_neutral_not_the_shapes():
+    verts, faces, D0, *_ = scene()
+    rng = np.random.default_rng(2)
+    F = 30
+    W = rng.uniform(0, 1, (F, D0.shape[0]))
+    W_hat = np.concatenate([np.ones((F, 1)), W], 1)
+    bias = np.array([0.4, -0.2, 0.3])
+    residual = np.broadcast_to(bias, (F, len(verts), 3)).copy()  # frames = b0 + bias + D* w
+    active = np.arange(len(verts))
+    X = ShapeUpdate(verts, D0, faces, active, lambda_r=0.1, lambda_d=1e-6).solve(W_hat, np.ones((F, len(verts))), residual)
+    np.testing.assert_allclose(X[0], np.broadcast_to(bias, X[0].shape), atol=1e-4)
+    assert np.abs(X[1:]).max() < 1e-4
+
+
+def test_sparse_cholesky_solves_and_refactors():
+    rng = np.random.default_rng(0)
+    A = sp.random(200, 200, density=0.02, random_state=0)
+    A = (A @ A.T + sp.eye(200) * 2).tocsc()
+    B = rng.normal(size=(200, 3))
+    ch = SparseCholesky(A)
+    np.testing.assert_allclose(A @ ch.solve(B), B, atol=1e-10)
+    A2 = A.copy()
+    A2.data *= 3.0
+    ch.refactor(A2)
+    np.testing.assert_allclose(A2 @ ch.solve(B[:, 0]), B[:, 0], atol=1e-10)
+
+
+# ----------------------------------------------------------------------------- EM
+def test_em_recovers_actor_shapes_and_never_increases_the_objective():
+    from rigbuild.eval.personalization import personalization_metrics
+
+    verts, faces, D0, actor, W, Rs, ts, seq, frames = scene()
+    fit = seq < 5
+    p = PersonalizeParams(lambda_s=0.1, lambda_t=1.0, lambda_r=10.0, lambda_d=0.05, max_iterations=30,
+                          support_tol_mm=1e-9, min_confident_vertices=10)
+    res = personalize(verts, D0, faces, frames[fit], None, seq[fit], p)
+    J = [o["total"] for o in res.objective]
+    assert np.all(np.diff(J) <= 1e-9 * J[0])
+    assert res.objective[-1]["iteration"] < 30  # stopped because J stopped decreasing
+    assert np.all(res.deltas[np.linalg.norm(D0, axis=2) == 0] == 0)  # local support
+    h0 = fit_weights_and_rigid(verts, D0, frames[~fit], None, seq[~fit], p)
+    h1 = fit_weights_and_rigid(res.neutral, res.deltas, frames[~fit], None, seq[~fit], p)
+    m = personalization_metrics(D0, res.deltas, actor, res.weights, W[fit], res.residual_initial_mm,
+                                res.residual_final_mm, None, h0["rms_mm"], h1["rms_mm"])
+    # measured: 0.87, 0.90, 0.38, 0.83, 0.022, 0.998
+    assert m["residual_reduction"] >= 0.8
+    assert m["heldout_residual_reduction"] >= 0.8
+    assert m["shape_error_reduction"] >= 0.3
+    assert m["shape_error_reduction_gauge"] >= 0.7
+    assert m["weight_mae"] <= 0.03
+    assert m["min_shape_cosine"] >= 0.99
+
+
+def test_weights_and_rigid_exact_with_the_true_rig():
+    verts, faces, D0, actor, W, Rs, ts, seq, frames = scene(seed=4)
+    p = PersonalizeParams(lambda_s=1e-6, lambda_t=1e-6, min_confident_vertices=10)
+    r = fit_weights_and_rigid(verts, actor, frames, None, seq, p)
+    assert r["rms_mm"] < 1e-4
+    np.testing.assert_allclose(r["weights"], W, atol=1e-4)
+    np.testing.assert_allclose(r["rotations"], Rs, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- bad input
+def test_topology_mismatch_is_a_clear_error():
+    verts, faces, D0, actor, W, Rs, ts, seq, frames = scene()
+    with pytest.raises(InputError, match="topology differs"):
+        personalize(verts, D0, faces, frames[:, :-3], None, seq)
+
+
+def test_all_zero_shape_is_a_clear_error():
+    verts, faces, D0, actor, W, Rs, ts, seq, frames = scene()
+    D = D0.copy()
+    D[2] = 0.0
+    with pytest.raises(InputError, match="all-zero shape.*mouthX"):
+        personalize(verts, D, faces, frames, None, seq, shape_names=["a", "b", "mouthX", "d"])
+
+
+def test_frames_with_too_few_confident_vertices_are_skipped_with_a_warning():
+    verts, faces, D0, actor, W, Rs, ts, seq, frames = scene()
+    conf = np.ones(frames.shape[:2])
+    conf[5, 20:] = 0.0  # frame 5: only 20 confident vertices
+    p = PersonalizeParams(max_iterations=2, min_confident_vertices=50, support_tol_mm=1e-9)
+    with pytest.warns(UserWarning, match="frame 5: only 20 confident vertices"):
+        res = personalize(verts, D0, faces, frames, conf, seq, p)
+    assert not res.kept[5] and res.kept.sum() == len(frames) - 1
+    assert np.all(np.isnan(res.weights[5])) and np.all(np.isfinite(res.weights[res.kept]))
+
+
+def test_em_can_start_from_given_weights_and_rigid_motion():
+    verts, faces, D0, actor, W, Rs, ts, seq, frames = scene()
+    p = PersonalizeParams(max_iterations=3, support_tol_mm=1e-9, min_confident_vertices=10, lambda_r=10.0)
+    res = personalize(verts, D0, faces, frames, None, seq, p, initial_weights=W, initial_rigid=(Rs, ts))
+    model = np.einsum("fij,fvj->fvi", Rs, verts + np.einsum("fk,kvc->fvc", W, D0)) + ts[:, None]
+    expected = np.sqrt(((model - frames) ** 2).sum(2).mean())
+    assert res.residual_initial_mm == pytest.approx(expected, rel=1e-9)
+    assert res.objective[1]["step"] == "shapes" and res.objective[1]["total"] <= res.objective[0]["total"]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_block_pivoting_matches_active_set(seed):
+    from rigbuild.personalize.weights import solve_box_qp_pivoting
+
+    rng = np.random.default_rng(seed + 10)
+    A = rng.normal(size=(200, 53))
+    A[:, :20] += 0.9 * A[:, 20:40]  # correlated shapes, as blendshapes are
+    b = A @ np.where(rng.random(53) < 0.2, rng.uniform(0, 1.3, 53), 0) + rng.normal(scale=0.3, size=200)
+    H, f = weight_qp(A.T @ A, A.T @ b, 0.1, 0.0)
+    x, done = solve_box_qp_pivoting(H, f)
+    assert done
+    np.testing.assert_allclose(x, solve_box_qp_active_set(H, f, x0=np.zeros(53)), atol=1e-9)
+    np.testing.assert_allclose(x, solve_box_qp_cvxopt(H, f), atol=1e-6)
