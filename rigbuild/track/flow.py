@@ -21,13 +21,14 @@ from rigbuild.track.matches import Matches, Source, ViewFrame, concat, lift_matc
 class FlowParams:
     """grid_px: match spacing (relative to a 1280-px-wide image); preset: DIS preset name (ultrafast,
     fast, medium); fb_sigma_px: forward-backward error scale of the weights; max_fb_px: rejection;
-    motion_step: motion-field sampling step in px."""
+    motion_step: motion-field (guide) sampling step in px; scale: image scale of the residual flow."""
 
     grid_px: float = 8.0
     preset: str = "fast"
     fb_sigma_px: float = 0.5
     max_fb_px: float = 1.5
-    motion_step: int = 2
+    motion_step: int = 4
+    scale: float = 1.0
 
 
 _PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
@@ -62,31 +63,53 @@ def m_at(guide: np.ndarray, flow: np.ndarray) -> np.ndarray:
     return cv2.remap(guide, gx + flow[..., 0], gy + flow[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
+def residual_flow(src_gray: np.ndarray, warped_gray: np.ndarray, preset: str, scale: float = 1.0
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """DIS flow (H, W, 2) px from ``src_gray`` to the guide-warped target and its forward-backward error
+    (H, W) px. ``scale`` < 1 computes the flow on images resized by ``scale`` (the residual after the guide
+    is small and smooth) and brings it back to full resolution."""
+    H, W = src_gray.shape
+    if scale < 1.0:
+        size = (max(int(round(W * scale)), 8), max(int(round(H * scale)), 8))
+        a = cv2.resize(src_gray, size, interpolation=cv2.INTER_AREA)
+        b = cv2.resize(warped_gray, size, interpolation=cv2.INTER_AREA)
+    else:
+        a, b = src_gray, warped_gray
+    dis = cv2.DISOpticalFlow_create(_PRESETS[preset])
+    fwd = dis.calc(a, b, None)
+    bwd = dis.calc(b, a, None)
+    h, w = a.shape
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    bx = cv2.remap(bwd, gx + fwd[..., 0], gy + fwd[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    fb = np.linalg.norm(fwd + bx, axis=2)
+    if scale < 1.0:
+        fwd = cv2.resize(fwd, (W, H), interpolation=cv2.INTER_LINEAR) * np.float32(W / w)
+        fb = cv2.resize(fb, (W, H), interpolation=cv2.INTER_LINEAR) * np.float32(W / w)
+    return fwd, fb
+
+
 def flow_matches(source: Source, targets: list[ViewFrame], estimate: np.ndarray, params: FlowParams,
                  max_prediction_error_mm: float = 3.0) -> Matches:
     """Dense guided-flow matches source -> target in every view, lifted to barycentric constraints.
-    Weight = ``exp(-fb^2 / (2 sigma^2))``."""
+    Weight = ``exp(-fb^2 / (2 sigma^2))``. Only the box around the source's observed surface is processed;
+    the guide (motion field) is sampled every ``motion_step`` px, the flow runs at ``scale``."""
     out = []
     for v, tgt in enumerate(targets):
         sv = source.views[v]
-        rows = np.flatnonzero((sv.tri_id >= 0).any(1))
-        cols = np.flatnonzero((sv.tri_id >= 0).any(0))
-        if rows.size == 0:
+        box = sv.surface_box(pad=16)
+        if box is None:
             continue
-        H, W = sv.tri_id.shape
-        pad = 16
-        y0, y1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, H)
-        x0, x1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, W)
-        motion = source.motion_field(v, estimate, step=params.motion_step)[y0:y1, x0:x1]
+        y0, y1, x0, x1 = box
+        motion = source.motion_field(v, estimate, step=params.motion_step, box=box)
         # the target crop is the source crop moved by the guide; remap works in full-image coordinates
         gx, gy = np.meshgrid(np.arange(x0, x1, dtype=np.float32), np.arange(y0, y1, dtype=np.float32))
         m = np.nan_to_num(motion, nan=0.0).astype(np.float32)
         warped = cv2.remap(tgt.gray, gx + m[..., 0], gy + m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        flow, fb = guided_flow(np.ascontiguousarray(sv.frame.gray[y0:y1, x0:x1]), warped, np.zeros_like(m), params.preset)
+        flow, fb = residual_flow(np.ascontiguousarray(sv.frame.gray[y0:y1, x0:x1]), warped, params.preset, params.scale)
         flow = flow + m_at(m, flow)  # total = residual + guide at the residually displaced position
         step = max(2, int(round(params.grid_px * tgt.camera.width / 1280.0)))
         ys, xs = np.mgrid[step // 2:y1 - y0:step, step // 2:x1 - x0:step]
-        sel = (sv.tri_id[ys + y0, xs + x0] >= 0) & (fb[ys, xs] <= params.max_fb_px)
+        sel = np.isfinite(motion[ys, xs, 0]) & np.isfinite(sv.frame.depth[ys + y0, xs + x0]) & (fb[ys, xs] <= params.max_fb_px)
         xs, ys = xs[sel], ys[sel]
         src_uv = np.stack([xs + x0, ys + y0], 1).astype(np.float64)
         tgt_uv = src_uv + flow[ys, xs].astype(np.float64)

@@ -1,12 +1,12 @@
-"""Views, rendered sources and 2-D matches lifted to barycentric constraints (Ma et al. 2016 s. 2.2).
+"""Views, sources and 2-D matches lifted to barycentric constraints (Ma et al. 2016 s. 2.2).
 
-A *source* is a frame whose tracking mesh is known (the previous frame, or the neutral anchor frame); it
-is rendered once per view into triangle-id / barycentric buffers, which give every source pixel its
-surface point. The rendered motion field (where that surface point lands under the current estimate of
-the target mesh) guides the search of every matching level. A 2-D match (source pixel, target pixel) in
-one view is lifted to 3-D with the two frames' depth maps; the source point becomes a base point on the
-tracking mesh plus a normal displacement ``h`` (:func:`normal_displacement`), and the constraint on the
-target mesh is ``c = u_target - h n`` at the same barycentric point.
+A *source* is a frame whose tracking mesh is known (the previous frame, or the neutral anchor frame); its
+depth map gives every source pixel its surface point: the lifted pixel's closest point on the source mesh
+(a render of the mesh says the same where mesh and reconstruction agree, at far higher cost). The motion
+field (where that surface point lands under the current estimate of the target mesh) guides the search of
+every matching level. A 2-D match (source pixel, target pixel) in one view is lifted to 3-D with the two
+frames' depth maps; the source point becomes a base point on the tracking mesh plus a normal displacement
+``h`` (:func:`normal_displacement`), and the constraint on the target mesh is ``c = u_target - h n`` at the same barycentric point.
 """
 
 from __future__ import annotations
@@ -80,36 +80,58 @@ def concat(matches: list[Matches], level: str = "all") -> Matches:
                    np.concatenate([m.view for m in ms]), level)
 
 
-def render_geometry(camera: Camera, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Triangle-id (H, W) int32 (-1 = none) and barycentric (H, W, 3) float32 buffers of a mesh in a view,
-    rendered with :func:`rigbuild.render.render_mesh` (flat dummy texture; only the geometry is used)."""
-    from rigbuild.render import TexturedMesh, render_mesh
+def closest_surface_points(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closest points of ``points`` (N, 3) mm on the mesh (vertices (V, 3), faces (F, 3)) by libigl's AABB
+    query. Returns tri (N,) int64, bary (N, 3) and distance (N,) mm."""
+    import igl
 
-    faces = np.asarray(faces, dtype=np.int64)
-    mesh = TexturedMesh(vertices, faces, np.zeros((1, 2)), np.zeros_like(faces), _FLAT_TEXTURE)
-    res = render_mesh(camera, mesh, msaa=False)
-    return res.tri_id, res.bary
-
-
-_FLAT_TEXTURE = np.full((8, 8, 3), 128, dtype=np.uint8)
+    pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    if pts.shape[0] == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+    V = np.ascontiguousarray(vertices, dtype=np.float64)
+    F = np.ascontiguousarray(faces, dtype=np.int64)
+    d2, tri, closest = igl.point_mesh_squared_distance(pts, V, F)
+    f = F[tri]
+    bary = np.asarray(igl.barycentric_coordinates(np.ascontiguousarray(closest), V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]))
+    bary = np.clip(bary, 0.0, None)
+    bary /= np.maximum(bary.sum(1, keepdims=True), 1e-12)
+    return np.asarray(tri, np.int64), bary, np.sqrt(np.maximum(d2, 0.0))
 
 
 @dataclass
 class SourceView:
-    """A view of a source frame: its images/depth plus the source mesh's rendered id/barycentric buffers."""
+    """A view of a source frame: its image/depth plus the source mesh. A source pixel's surface point is its
+    depth-map point's closest point on the source mesh (no render needed: the depth map already says which
+    surface the pixel sees; points further than ``max_offset_mm`` from the mesh are not on it)."""
 
     frame: ViewFrame
-    tri_id: np.ndarray
-    bary: np.ndarray
+    vertices: np.ndarray
+    faces: np.ndarray
+    max_offset_mm: float = 2.0
+    cache: dict = field(default_factory=dict, repr=False)
 
     def surface_points(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """tri (N,), bary (N, 3) of the source mesh at the pixels nearest to uv (N, 2); valid (N,)."""
-        H, W = self.tri_id.shape
-        iu = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, W - 1)
-        iv = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, H - 1)
-        inside = (uv[:, 0] >= -0.5) & (uv[:, 1] >= -0.5) & (uv[:, 0] <= W - 0.5) & (uv[:, 1] <= H - 0.5)
-        tri = self.tri_id[iv, iu].astype(np.int64)
-        return tri, self.bary[iv, iu].astype(np.float64), inside & (tri >= 0)
+        """tri (N,), bary (N, 3) of the source mesh under pixels uv (N, 2); valid (N,)."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        X = lift(self.frame.camera, self.frame.depth, uv)
+        ok = np.isfinite(X).all(1)
+        tri = np.zeros(uv.shape[0], np.int64)
+        bary = np.full((uv.shape[0], 3), 1.0 / 3.0)
+        if ok.any():
+            t, b, d = closest_surface_points(X[ok], self.vertices, self.faces)
+            tri[ok], bary[ok] = t, b
+            ok[ok] = d <= self.max_offset_mm
+        return tri, bary, ok
+
+    def surface_box(self, pad: int = 16) -> tuple[int, int, int, int] | None:
+        """Pixel box (y0, y1, x0, x1) around the source's depth (the observed surface), or None."""
+        fin = np.isfinite(self.frame.depth)
+        rows, cols = np.flatnonzero(fin.any(1)), np.flatnonzero(fin.any(0))
+        if rows.size == 0:
+            return None
+        H, W = fin.shape
+        return max(rows[0] - pad, 0), min(rows[-1] + pad + 1, H), max(cols[0] - pad, 0), min(cols[-1] + pad + 1, W)
 
 
 @dataclass
@@ -123,33 +145,42 @@ class Source:
 
     @classmethod
     def build(cls, vertices: np.ndarray, faces: np.ndarray, frames: list[ViewFrame], name: str) -> "Source":
-        views = []
-        for f in frames:
-            tri, bary = render_geometry(f.camera, vertices, faces)
-            views.append(SourceView(f, tri, bary))
-        return cls(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64), views, name)
+        v = np.asarray(vertices, dtype=np.float64)
+        f = np.asarray(faces, dtype=np.int64)
+        return cls(v, f, [SourceView(fr, v, f) for fr in frames], name)
 
     def predict(self, view: int, tri: np.ndarray, bary: np.ndarray, estimate: np.ndarray) -> np.ndarray:
         """Predicted target pixels (N, 2) of source surface points under the target estimate (T, 3)."""
         cam = self.views[view].frame.camera
         return cam.project(interpolate(estimate, self.faces, tri, bary))
 
-    def motion_field(self, view: int, estimate: np.ndarray, step: int = 1) -> np.ndarray:
-        """Rendered motion field (H, W, 2) px: displacement of each source pixel's surface point to its
-        projection under ``estimate`` (NaN where the source mesh is not seen). ``step`` > 1 computes it on a
-        coarser grid and interpolates."""
+    def motion_field(self, view: int, estimate: np.ndarray, step: int = 8,
+                     box: tuple[int, int, int, int] | None = None) -> np.ndarray:
+        """Motion field (h, w, 2) px over ``box`` (y0, y1, x0, x1; default the whole image): displacement of
+        each source pixel's surface point to its projection under ``estimate``, sampled every ``step`` px and
+        interpolated bilinearly (the field is smooth); NaN where no grid sample near the pixel is on the mesh."""
         sv = self.views[view]
-        H, W = sv.tri_id.shape
-        ys, xs = np.mgrid[0:H:step, 0:W:step]
-        tri = sv.tri_id[ys, xs]
-        m = tri >= 0
-        out = np.full(ys.shape + (2,), np.nan, dtype=np.float32)
-        if m.any():
-            pred = self.predict(view, tri[m].astype(np.int64), sv.bary[ys, xs][m].astype(np.float64), estimate)
-            out[m] = (pred - np.stack([xs[m], ys[m]], 1)).astype(np.float32)
-        if step > 1:
-            out = cv2.resize(np.nan_to_num(out, nan=0.0), (W, H), interpolation=cv2.INTER_LINEAR)
-            out[sv.tri_id < 0] = np.nan
+        H, W = sv.frame.depth.shape
+        y0, y1, x0, x1 = box or (0, H, 0, W)
+        ys, xs = np.mgrid[y0:y1 + step:step, x0:x1 + step:step]
+        uv = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
+        tri, bary, ok = sv.surface_points(uv)
+        coarse = np.zeros((uv.shape[0], 2), np.float32)
+        if ok.any():
+            coarse[ok] = (self.predict(view, tri[ok], bary[ok], estimate) - uv[ok]).astype(np.float32)
+        gy, gx = ys.shape
+        # normalized-convolution fill of the grid holes, then bilinear up-sampling to the pixel box
+        wgt = ok.reshape(gy, gx).astype(np.float32)
+        c = coarse.reshape(gy, gx, 2) * wgt[..., None]
+        sz = (x1 - x0, y1 - y0)
+        mapx = (np.arange(x0, x1, dtype=np.float32) - x0) / step
+        mapy = (np.arange(y0, y1, dtype=np.float32) - y0) / step
+        mx, my = np.meshgrid(mapx.astype(np.float32), mapy.astype(np.float32))
+        up_w = cv2.remap(wgt, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        up_c = cv2.remap(c, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out = up_c / np.maximum(up_w, 1e-6)[..., None]
+        out[up_w < 1e-3] = np.nan
+        assert out.shape[:2] == (sz[1], sz[0])
         return out
 
 
@@ -164,6 +195,7 @@ def lift_matches(
     max_normal_offset_mm: float = 2.0,
     estimate: np.ndarray | None = None,
     max_prediction_error_mm: float | None = None,
+    surface: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> Matches:
     """2-D matches in one view -> barycentric constraints on the target mesh.
 
@@ -173,11 +205,15 @@ def lift_matches(
     depth is missing or discontinuous, where the base point leaves its triangle, where ``|h|`` exceeds
     ``max_normal_offset_mm`` (the reconstruction and the mesh disagree: occlusion, eyes, hair), or (given an
     ``estimate``) where the target point is further than ``max_prediction_error_mm`` from its prediction.
+    surface : precomputed ``SourceView.surface_points(src_uv)`` (tri, bary, valid), to avoid recomputing it.
     """
     sv = source.views[view]
     src_uv = np.asarray(src_uv, dtype=np.float64).reshape(-1, 2)
     tgt_uv = np.asarray(tgt_uv, dtype=np.float64).reshape(-1, 2)
-    tri, bary0, ok = sv.surface_points(src_uv)
+    if surface is None:
+        surface = sv.surface_points(src_uv)
+    tri, bary0, ok = surface
+    ok = ok.copy()
     u_src = lift(sv.frame.camera, sv.frame.depth, src_uv)
     u_tgt = lift(target.camera, target.depth, tgt_uv)
     ok &= np.isfinite(u_src).all(1) & np.isfinite(u_tgt).all(1)

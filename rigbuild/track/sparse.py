@@ -21,7 +21,8 @@ from rigbuild.track.matches import Matches, Source, ViewFrame, lift_matches
 @dataclass
 class SparseSchedule:
     """Per-round search radius (px, relative to a 1280-px-wide image), descriptor threshold (L2 on
-    OpenCV's SIFT descriptors, ~0-700) and lambda."""
+    OpenCV's SIFT descriptors, ~0-700) and lambda. ``max_features``: the strongest keypoints kept per view
+    (0 = all); SIFT runs on the box around the observed surface only."""
 
     radius_px: tuple[float, ...] = (24.0, 12.0, 6.0)
     descriptor_threshold: tuple[float, ...] = (180.0, 230.0, 280.0)
@@ -29,19 +30,25 @@ class SparseSchedule:
     ratio: float = 0.85
     contrast_threshold: float = 0.01
     edge_threshold: float = 12.0
-    max_features: int = 0
+    max_features: int = 3000
 
 
 def sift_features(frame: ViewFrame, schedule: SparseSchedule | None = None) -> tuple[np.ndarray, np.ndarray]:
     """SIFT keypoints (N, 2) px and descriptors (N, 128) float32 of a view (cached on the frame);
-    only where the depth map has surface."""
+    only where the depth map has surface (detected on the box around it)."""
     if frame._sift is None:
         s = schedule or SparseSchedule()
         sift = cv2.SIFT_create(nfeatures=s.max_features, contrastThreshold=s.contrast_threshold,
                                edgeThreshold=s.edge_threshold)
-        mask = np.isfinite(frame.depth).astype(np.uint8) * 255
-        kps, desc = sift.detectAndCompute(frame.gray, mask)
-        pts = np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2)
+        fin = np.isfinite(frame.depth)
+        rows, cols = np.flatnonzero(fin.any(1)), np.flatnonzero(fin.any(0))
+        if rows.size == 0:
+            frame._sift = (np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+            return frame._sift
+        y0, y1, x0, x1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+        mask = fin[y0:y1, x0:x1].astype(np.uint8) * 255
+        kps, desc = sift.detectAndCompute(np.ascontiguousarray(frame.gray[y0:y1, x0:x1]), mask)
+        pts = np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2) + [x0, y0]
         frame._sift = (pts, np.zeros((0, 128), np.float32) if desc is None else desc.astype(np.float32))
     return frame._sift
 
@@ -95,7 +102,9 @@ def sparse_matches(source: Source, targets: list[ViewFrame], estimate: np.ndarra
         scale = tgt.camera.width / 1280.0
         sp, sd = sift_features(sv.frame, schedule)
         tp, td = sift_features(tgt, schedule)
-        tri, bary, okp = sv.surface_points(sp)
+        if sv.cache.get("sift") is None:
+            sv.cache["sift"] = sv.surface_points(sp)
+        tri, bary, okp = sv.cache["sift"]
         pred = np.full((sp.shape[0], 2), np.nan)
         if okp.any():
             pred[okp] = source.predict(v, tri[okp], bary[okp], estimate)
@@ -103,5 +112,6 @@ def sparse_matches(source: Source, targets: list[ViewFrame], estimate: np.ndarra
                                     schedule.descriptor_threshold[r], schedule.ratio)
         w = np.clip(1.0 - dist / schedule.descriptor_threshold[r], 0.05, 1.0)
         out.append(lift_matches(source, v, sp[si], tp[ti], tgt, w, "sparse", estimate=estimate,
-                                max_prediction_error_mm=max_prediction_error_mm))
+                                max_prediction_error_mm=max_prediction_error_mm,
+                                surface=(tri[si], bary[si], okp[si])))
     return concat(out, "sparse")

@@ -30,7 +30,9 @@ def track_neutral_frame(template: Rig, frames: list[ViewFrame], params: TrackPar
     dots, rays = neutral_dots(frames, p.dots)
     pts, nrm = scan_from_depth(frames)
     mesh = build_tracking_mesh(template.neutral, template.faces, template.face_region)
-    reg = register_neutral(template, pts, nrm, dots, rays, mesh=mesh, **(registration or {}))
+    kw = {"depth_views": [(f.camera, f.depth) for f in frames]}
+    kw.update(registration or {})
+    reg = register_neutral(template, pts, nrm, dots, rays, mesh=mesh, **kw)
     return reg, mesh
 
 
