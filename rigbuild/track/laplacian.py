@@ -33,6 +33,7 @@ import scipy.sparse as sp
 from cvxopt import cholmod, matrix, spmatrix
 
 from rigbuild.errors import InputError
+from rigbuild.geometry.mesh import vertex_normals  # noqa: F401 (re-exported)
 
 cholmod.options["supernodal"] = 2
 
@@ -55,18 +56,6 @@ def interpolate(values: np.ndarray, faces: np.ndarray, tri: np.ndarray, bary: np
     """Barycentric interpolation of per-vertex ``values`` (V, D) at surface points -> (N, D)."""
     corners = np.asarray(values)[np.asarray(faces)[np.asarray(tri, dtype=np.int64)]]  # (N, 3, D)
     return np.einsum("nk,nkd->nd", np.asarray(bary, dtype=np.float64).reshape(-1, 3), corners)
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) unit area-weighted vertex normals (zero for isolated vertices)."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # area-weighted (2x area)
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
 
 
 def interpolated_normals(normals: np.ndarray, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
