@@ -7,6 +7,7 @@
 rule personalize:
     input:
         tracks=lambda wc: [f"results/{wc.session}/track/{s.name}/vertices.npz" for s in session_spec(wc.session).rom],
+        cameras="results/{session}/calib/cameras.json",
     output:
         rig="results/{session}/personalize/rig.npz",
         initial_rig="results/{session}/personalize/initial_rig.npz",

@@ -31,7 +31,8 @@ def main(smk) -> None:
         template = load_rig(ict_dir() if spec == "ict" else spec)
         tracks = dict(zip(list(smk.params.sequences), list(smk.input.tracks)))
         metrics = run_personalization(tracks, template, Path(smk.output.rig).parent, dict(smk.params.personalize or {}),
-                                      smk.params.metrics, smk.params.session_dir, dict(smk.params.neutral_frames))
+                                      smk.params.metrics, smk.params.session_dir, dict(smk.params.neutral_frames),
+                                      cameras_json=smk.input.cameras)
     except Exception as exc:  # log the user-facing message, then fail the job
         logging.error("%s", exc)
         raise

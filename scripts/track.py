@@ -113,7 +113,11 @@ def run_neutral(smk) -> None:
     if gt.exists():
         with np.load(gt) as z:
             truth = z["vertices"][list(z["frames"]).index(seq.neutral_frame)] if "frames" in z else z["vertices"][0]
-        e = np.linalg.norm(reg.vertices[template.face_vertices] - truth[template.face_vertices], axis=1)
+        from rigbuild.eval.frames import calibrated_to_ground_truth, points_to_ground_truth
+
+        sim = calibrated_to_ground_truth(session_root / "ground_truth", smk.input.cameras)
+        est = points_to_ground_truth(reg.vertices[template.face_vertices], sim)
+        e = np.linalg.norm(est - truth[template.face_vertices], axis=1)
         values["neutral_error_mm"] = float(e.mean())
     merge_metrics(smk.params.metrics, "tracking", values)
 
@@ -214,7 +218,11 @@ def run_sequence(smk) -> None:
         with np.load(gt0) as z:
             fr0 = list(z["frames"]) if "frames" in z else list(anchor_seq.frames)
             truth_neutral = z["vertices"][fr0.index(anchor_seq.neutral_frame)]
-        s = tracking_summary(V, truth, template.faces, template.face_vertices, neutral, truth_neutral)
+        from rigbuild.eval.frames import calibrated_to_ground_truth, points_to_ground_truth
+
+        sim = calibrated_to_ground_truth(session_root / "ground_truth", smk.input.cameras)
+        s = tracking_summary(points_to_ground_truth(V, sim), truth, template.faces, template.face_vertices,
+                             points_to_ground_truth(neutral, sim), truth_neutral)
         seq_metrics.update({k: v for k, v in s.items() if not k.endswith("errors")})
         save_npz(Path(out.metrics).with_name("errors.npz"), errors=s["errors"].astype(np.float32))
     write_json(out.metrics, seq_metrics)

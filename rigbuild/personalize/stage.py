@@ -77,6 +77,7 @@ def run_personalization(
     metrics_path: str | os.PathLike | None = None,
     session_dir: str | os.PathLike | None = None,
     neutral_frames: Mapping[str, int] | None = None,
+    cameras_json: str | os.PathLike | None = None,
 ) -> dict:
     """Run the whole stage.
 
@@ -86,6 +87,8 @@ def run_personalization(
     cfg : ``config["params"]["personalize"]`` (PersonalizeParams fields + ``held_out_sequences``,
         ``neutral_sequence``, ``neutral_frame``, ``fit_region`` ("face" | "all"), ``heatmaps``).
     metrics_path : results/{session}/metrics.json (merged under ``personalization``).
+    cameras_json : the calibrated cameras; with ground truth, the rig is mapped from the calibrated world
+        into the ground-truth world (similarity on the camera centres) before it is compared.
     session_dir : the session folder; its ``ground_truth/`` (if any) feeds the GT metrics.
     neutral_frames : sequence -> the session frame number of its neutral pose (SequenceSpec.neutral_frame).
 
@@ -197,7 +200,13 @@ def run_personalization(
     if gt_dir is not None and (gt_dir / "actor_rig.npz").exists():
         from rigbuild.eval.personalization import ground_truth_metrics
 
-        metrics.update(ground_truth_metrics(gt_dir, template.shape_names, Dstar, res.deltas, region,
+        D0, D1 = Dstar, res.deltas
+        if cameras_json is not None:
+            from rigbuild.eval.frames import calibrated_to_ground_truth, vectors_to_ground_truth
+
+            sim = calibrated_to_ground_truth(gt_dir, cameras_json)
+            D0, D1 = vectors_to_ground_truth(Dstar, sim), vectors_to_ground_truth(res.deltas, sim)
+        metrics.update(ground_truth_metrics(gt_dir, template.shape_names, D0, D1, region,
                                             res.weights, seq_col, frame_col,
                                             ho.get("final", {}).get("weights"),
                                             np.concatenate([np.full(data[s]["vertices"].shape[0], s) for s in held]) if held else None,
