@@ -411,11 +411,15 @@ def personalize(
 
     # local support: shape k may change at vertex v only where |D*_kv| > support_tol_mm; elsewhere it
     # keeps D* (so D_kv = 0 wherever D*_kv = 0, and sub-threshold tails stay as transferred)
-    support = np.linalg.norm(Dstar, axis=2) > p.support_tol_mm
-    empty = [names[k] for k in range(K) if not support[k].any()]
-    if empty:
-        raise InputError(f"shape(s) {', '.join(empty)} move less than support_tol_mm = {p.support_tol_mm} everywhere",
-                         fix="remove them from the rig or lower params.personalize.support_tol_mm")
+    # keeps D* (so D_kv = 0 wherever D*_kv = 0, and sub-threshold tails stay as transferred). A shape
+    # that moves less than support_tol_mm everywhere uses a quarter of its own peak instead.
+    mag = np.linalg.norm(Dstar, axis=2)
+    peak = mag.max(axis=1)
+    small = [names[k] for k in range(K) if peak[k] <= p.support_tol_mm]
+    if small:
+        warnings.warn(f"shape(s) {', '.join(small)} move at most support_tol_mm = {p.support_tol_mm} mm; "
+                      "their support is a quarter of their own peak", stacklevel=2)
+    support = mag > np.minimum(p.support_tol_mm, 0.25 * peak)[:, None]
 
     data_v = np.flatnonzero(confident[kept].any(0))
     active = grow_ring(data_v, faces, V, p.ring)
