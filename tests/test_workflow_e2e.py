@@ -35,7 +35,7 @@ def _config(tmp: Path) -> dict:
     base = yaml.safe_load((PROJECT_ROOT / "config" / "config.yaml").read_text())
     return {
         "sessions": {"e2e": {"path": str(tmp / "sessions" / "e2e"), "synthetic": {
-            "template_rig": "procedural", "seed": 5, "n_cameras": 4, "image_size": [480, 360],
+            "template_rig": "procedural", "seed": 5, "n_cameras": 4, "image_size": [640, 480],
             "calib_poses": 10,
             "board": {"type": "charuco", "squares_x": 5, "squares_y": 4, "square_size_mm": 40.0,
                       "marker_size_mm": 30.0, "dictionary": "DICT_4X4_50"},
