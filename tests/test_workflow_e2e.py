@@ -35,10 +35,9 @@ def _config(tmp: Path) -> dict:
     base = yaml.safe_load((PROJECT_ROOT / "config" / "config.yaml").read_text())
     return {
         "sessions": {"e2e": {"path": str(tmp / "sessions" / "e2e"), "synthetic": {
-            "template_rig": "procedural", "seed": 5, "n_cameras": 4, "image_size": [640, 480],
-            "calib_poses": 10,
-            "board": {"type": "charuco", "squares_x": 5, "squares_y": 4, "square_size_mm": 40.0,
-                      "marker_size_mm": 30.0, "dictionary": "DICT_4X4_50"},
+            # the demo session's rig and cameras (config/config.yaml), fewer poses, frames and seconds
+            **base["sessions"]["demo"]["synthetic"],
+            "calib_poses": 12,
             "rom": {"n_sequences": 2, "frames_per_sequence": 5, "coverage": 1},
             "performance": {"n": 1, "duration_s": 3.0, "fps": 30.0, "noise_mm": 0.1, "gap_fraction": 0.01},
         }}},
