@@ -31,7 +31,8 @@ def time_renders(rig_spec: str, width: int, height: int, backend: str, n: int = 
     rig = load_rig(rig_spec)
     cams = make_camera_rig(n_cameras=4, width=width, height=height, target=rig.neutral[rig.face_vertices].mean(0))
     mesh = TexturedMesh(rig.neutral, rig.faces, rig.uvs, rig.face_uvs, speckle_texture(2048 if width >= 1000 else 1024, 0))
-    render_mesh(cams[0], mesh, backend=backend)  # warm-up (context, texture upload)
+    for cam in cams:  # warm-up: context, texture upload, framebuffers and ray tables of every camera
+        render_mesh(cam, mesh, backend=backend, msaa=False, with_geometry=False)
     wall, cpu = [], []
     for i in range(n):
         t0, c0 = time.perf_counter(), time.process_time()
