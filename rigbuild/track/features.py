@@ -67,17 +67,23 @@ def detect_dots(image_rgb: np.ndarray, params: DotParams | None = None, mask: np
     return np.stack([cx[keep], cy[keep]], axis=1), area[keep - 1].astype(np.float64)
 
 
-def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear sample of a (H, W) float image at pixels uv (N, 2); NaN outside or next to NaN."""
-    img = np.asarray(image, dtype=np.float64)
-    H, W = img.shape
+def _pixel_cells(shape: tuple[int, int], uv: np.ndarray):
+    """For pixels uv (N, 2) in an (H, W) image: the in-image mask (N,) and, for those, the top-left
+    corner (u0, v0) of their 2x2 cell and the fractional offsets (du, dv)."""
+    H, W = shape
     u = np.asarray(uv, dtype=np.float64)[:, 0]
     v = np.asarray(uv, dtype=np.float64)[:, 1]
-    out = np.full(u.shape, np.nan)
     ok = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (v >= 0) & (u <= W - 1) & (v <= H - 1)
     u0 = np.minimum(np.floor(u[ok]).astype(np.int64), W - 2)
     v0 = np.minimum(np.floor(v[ok]).astype(np.int64), H - 2)
-    du, dv = u[ok] - u0, v[ok] - v0
+    return ok, u0, v0, u[ok] - u0, v[ok] - v0
+
+
+def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear sample of a (H, W) float image at pixels uv (N, 2); NaN outside or next to NaN."""
+    img = np.asarray(image, dtype=np.float64)
+    ok, u0, v0, du, dv = _pixel_cells(img.shape, uv)
+    out = np.full(ok.shape, np.nan)
     out[ok] = ((1 - du) * (1 - dv) * img[v0, u0] + du * (1 - dv) * img[v0, u0 + 1]
                + (1 - du) * dv * img[v0 + 1, u0] + du * dv * img[v0 + 1, u0 + 1])
     return out
@@ -86,13 +92,8 @@ def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
 def depth_discontinuity(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Max minus min of the 2x2 depth neighbourhood at uv (N,) (mm); NaN where any is NaN/outside."""
     d = np.asarray(depth, dtype=np.float64)
-    H, W = d.shape
-    u = np.asarray(uv, dtype=np.float64)[:, 0]
-    v = np.asarray(uv, dtype=np.float64)[:, 1]
-    out = np.full(u.shape, np.nan)
-    ok = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (v >= 0) & (u <= W - 1) & (v <= H - 1)
-    u0 = np.minimum(np.floor(u[ok]).astype(np.int64), W - 2)
-    v0 = np.minimum(np.floor(v[ok]).astype(np.int64), H - 2)
+    ok, u0, v0, _, _ = _pixel_cells(d.shape, uv)
+    out = np.full(ok.shape, np.nan)
     n = np.stack([d[v0, u0], d[v0, u0 + 1], d[v0 + 1, u0], d[v0 + 1, u0 + 1]], axis=1)
     out[ok] = n.max(1) - n.min(1)
     return out
