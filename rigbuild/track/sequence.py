@@ -349,7 +349,10 @@ class SequenceTracker:
         out, conf, stats = [], [], []
         sources_prev: Source | None = None
         prev = prev2 = None
-        for i, (frames, fid) in enumerate(zip(frames_per_time, frame_ids)):
+        from rigbuild.progress import progress as progress_bar
+
+        steps = progress_bar(list(zip(frames_per_time, frame_ids)), f"tracking {sequence}")
+        for i, (frames, fid) in enumerate(steps):
             if i == 0:
                 est = self.rigid_start(frames, sequence) if "features" in self.p.levels else self.neutral.copy()
                 srcs = [self.anchor] if self.anchor is not None else []
