@@ -351,7 +351,7 @@ class SequenceTracker:
         prev = prev2 = None
         from rigbuild.progress import progress as progress_bar
 
-        steps = progress_bar(list(zip(frames_per_time, frame_ids)), f"tracking {sequence}")
+        steps = progress_bar(list(zip(frames_per_time, frame_ids)), f"tracking {sequence}", unit="frame")
         for i, (frames, fid) in enumerate(steps):
             if i == 0:
                 est = self.rigid_start(frames, sequence) if "features" in self.p.levels else self.neutral.copy()
