@@ -175,9 +175,9 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
     t1 = time.perf_counter()
     poses, seen_by = make_board_poses(cameras, spec.board, n_poses=int(p["calib_poses"]), seed=seed + 1,
                                       center=face_centre)
-    from rigbuild.progress import progress
+    from rigbuild.progress import progress as progress_bar
 
-    for cam in progress(cameras, "calibration images", unit="camera"):
+    for cam in progress_bar(cameras, "calibration images", unit="camera"):
         for n, (Rb, tb) in enumerate(poses):
             img = render_board(cam, spec.board, Rb, tb, noise_sigma=float(p["noise_sigma"]), msaa=bool(p["msaa"]),
                                seed=seed * 1000 + n)
@@ -194,7 +194,7 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
     seqs = make_rom_weights(actor.shape_names, len(spec.rom), int(rom_cfg["frames_per_sequence"]),
                             seed=seed + 2, coverage=int(rom_cfg["coverage"]))
     n_images = 0
-    for s, (seq, Wseq) in enumerate(progress(list(zip(spec.rom, seqs)), "ROM images", unit="sequence")):
+    for s, (seq, Wseq) in enumerate(progress_bar(list(zip(spec.rom, seqs)), "ROM images", unit="sequence")):
         R, t = make_head_motion(Wseq.shape[0], seed=seed + 100 + s,
                                 max_rotation_deg=float(rom_cfg["max_rotation_deg"]),
                                 max_translation_mm=float(rom_cfg["max_translation_mm"]))
