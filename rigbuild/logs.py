@@ -12,7 +12,7 @@ from typing import Any, Callable
 
 
 def run_logged(snakemake: Any, main: Callable[[Any], None]) -> None:
-    """Run ``main(snakemake)`` with stdout/stderr and the ``rigbuild`` logger going to the rule's log.
+    """Run ``main(snakemake)`` with stdout/stderr, logging and warnings going to the rule's log.
 
     On an exception the traceback is written to the log and the error's message is printed to the
     real stderr (so the user sees 'file: what is wrong / fix: ...' in the Snakemake output), then the
@@ -27,9 +27,10 @@ def run_logged(snakemake: Any, main: Callable[[Any], None]) -> None:
     with open(log_path, "w", buffering=1) as fh, contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):
         handler = logging.StreamHandler(fh)
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-        logger = logging.getLogger("rigbuild")
+        logger = logging.getLogger()  # every logger (rigbuild.*, libraries, warnings) goes to the log
         logger.addHandler(handler)
         logger.setLevel(logging.INFO)
+        logging.captureWarnings(True)
         t0 = time.perf_counter()
         try:
             main(snakemake)

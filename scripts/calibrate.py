@@ -16,19 +16,15 @@ from pathlib import Path
 def main(smk) -> None:
     from rigbuild.calibrate.session import run_calibration
 
-    log_path = smk.log[0] if len(smk.log) else None
-    logging.basicConfig(filename=log_path, level=logging.INFO, format="%(asctime)s %(message)s")
     session_dir = Path(smk.input.session_yaml).parent
     out_dir = Path(smk.output.cameras).parent
-    try:
-        metrics = run_calibration(session_dir, out_dir, dict(smk.params.calibrate or {}), smk.params.metrics)
-    except Exception as exc:  # log the user-facing message, then fail the job
-        logging.error("%s", exc)
-        raise
+    metrics = run_calibration(session_dir, out_dir, dict(smk.params.calibrate or {}), smk.params.metrics)
     logging.info("calibration: %s", metrics)
 
 
 if "snakemake" in globals():
-    main(snakemake)  # noqa: F821
+    from rigbuild.logs import run_logged
+
+    run_logged(snakemake, main)  # noqa: F821
 else:
     sys.exit("scripts/calibrate.py is run by Snakemake (rule calibrate)")

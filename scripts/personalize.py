@@ -23,23 +23,18 @@ def main(smk) -> None:
     from rigbuild.paths import ict_dir
     from rigbuild.personalize.stage import run_personalization
 
-    log_path = smk.log[0] if len(smk.log) else None
-    logging.basicConfig(filename=log_path, level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    logging.captureWarnings(True)
-    try:
-        spec = str(smk.params.template_rig)
-        template = load_rig(ict_dir() if spec == "ict" else spec)
-        tracks = dict(zip(list(smk.params.sequences), list(smk.input.tracks)))
-        metrics = run_personalization(tracks, template, Path(smk.output.rig).parent, dict(smk.params.personalize or {}),
-                                      smk.params.metrics, smk.params.session_dir, dict(smk.params.neutral_frames),
-                                      cameras_json=smk.input.cameras)
-    except Exception as exc:  # log the user-facing message, then fail the job
-        logging.error("%s", exc)
-        raise
+    spec = str(smk.params.template_rig)
+    template = load_rig(ict_dir() if spec == "ict" else spec)
+    tracks = dict(zip(list(smk.params.sequences), list(smk.input.tracks)))
+    metrics = run_personalization(tracks, template, Path(smk.output.rig).parent, dict(smk.params.personalize or {}),
+                                  smk.params.metrics, smk.params.session_dir, dict(smk.params.neutral_frames),
+                                  cameras_json=smk.input.cameras)
     logging.info("personalization: %s", metrics)
 
 
 if "snakemake" in globals():
-    main(snakemake)  # noqa: F821
+    from rigbuild.logs import run_logged
+
+    run_logged(snakemake, main)  # noqa: F821
 else:
     sys.exit("scripts/personalize.py is run by Snakemake (rule personalize)")

@@ -231,8 +231,6 @@ def run_sequence(smk) -> None:
 
 
 def main(smk) -> None:
-    logging.basicConfig(filename=str(smk.log[0]) if smk.log else None, level=logging.INFO,
-                        format="%(asctime)s %(levelname)s %(message)s")
     if smk.rule == "track_neutral":
         run_neutral(smk)
     elif smk.rule == "track_sequence":
@@ -274,4 +272,6 @@ def run_metrics(smk) -> None:
 
 
 if "snakemake" in globals():
-    main(snakemake)  # noqa: F821
+    from rigbuild.logs import run_logged
+
+    run_logged(snakemake, main)  # noqa: F821

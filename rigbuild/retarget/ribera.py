@@ -430,6 +430,28 @@ def kron_sum_solve(
     return np.moveaxis(x, 0, 2)
 
 
+def match_terms(da_keys: np.ndarray, sim_keys: np.ndarray, masks: np.ndarray,
+                activations: np.ndarray | None = None, targets: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """E_Match's normal-equation pieces: the diagonal d (K, M) and right-hand side b (K, M, 3).
+
+    Faithful (eq. 10): ``(1/F) sum_f sum_k c~_kf |dp_k - diag(u_k) da_f|^2`` over visible markers.
+    With ``activations`` h (K, F') and ``targets`` r (K, F', M, 3): the activation-aware option
+    ``(1/F) sum c~_kf |diag(u_k) (h_kf dp_k - r_kf)|^2`` (the mask as a residual weight).
+    """
+    Fk = max(da_keys.shape[0], 1)
+    vis = visible_mask(da_keys).astype(np.float64)  # (F', M)
+    if activations is None:
+        d_match = (sim_keys @ vis) / Fk
+        b_match = np.einsum("kf,km,fmc->kmc", sim_keys, masks, np.nan_to_num(da_keys)) / Fk
+    else:
+        h = activations
+        u2 = masks * masks
+        d_match = ((sim_keys * h * h) @ vis) * u2 / Fk
+        b_match = np.einsum("kf,km,kfmc->kmc", sim_keys * h, u2, np.nan_to_num(targets) * vis[None, :, :, None]) / Fk
+    return d_match, b_match
+
+
 def align_terms(
     ds: np.ndarray,
     dg: np.ndarray,
@@ -447,17 +469,7 @@ def align_terms(
     terms. :func:`kron_sum_solve` solves it.
     """
     K, M, _ = ds.shape
-    Fk = max(da_keys.shape[0], 1)
-    vis = visible_mask(da_keys).astype(np.float64)
-    a = np.nan_to_num(da_keys)
-    if activations is None:
-        d_match = (sim_keys @ vis) / Fk
-        b_match = np.einsum("kf,km,fmc->kmc", sim_keys, masks, a) / Fk
-    else:
-        h = activations
-        u2 = masks * masks
-        d_match = ((sim_keys * h * h) @ vis) * u2 / Fk
-        b_match = np.einsum("kf,km,kfmc->kmc", sim_keys * h, u2, np.nan_to_num(targets) * vis[None, :, :, None]) / Fk
+    d_match, b_match = match_terms(da_keys, sim_keys, masks, activations, targets)
     L = lap.toarray() if sp.issparse(lap) else np.asarray(lap)
     C = (params.alpha / M) * (L.T @ L)
     G = cross_expression_laplacian(shape_correlation_matrix(ds))
@@ -488,19 +500,7 @@ def align_system(
     ``(1/F) sum c~_kf |h_kf dp_k - diag(u_k) r_kf|^2`` (see :func:`transfer_blendshapes`, ``match``).
     """
     K, M, _ = ds.shape
-    Fk = max(da_keys.shape[0], 1)
-    vis = visible_mask(da_keys).astype(np.float64)  # (F', M)
-    a = np.nan_to_num(da_keys)
-    if activations is None:
-        # E_Match (eq. 10): (1/F) sum_f sum_k c~_kf |dp_k - diag(u_k) da_f|^2 (visible markers only)
-        d_match = (sim_keys @ vis) / Fk  # (K, M)
-        b_match = np.einsum("kf,km,fmc->kmc", sim_keys, masks, a) / Fk
-    else:
-        # activation-aware match with the mask as a residual weight: c~ |diag(u_k) (h_kf dp_k - r_kf)|^2
-        h = activations
-        u2 = masks * masks
-        d_match = ((sim_keys * h * h) @ vis) * u2 / Fk
-        b_match = np.einsum("kf,km,kfmc->kmc", sim_keys * h, u2, np.nan_to_num(targets) * vis[None, :, :, None]) / Fk
+    d_match, b_match = match_terms(da_keys, sim_keys, masks, activations, targets)
     LtL = (lap.T @ lap).tocsr()
     G = cross_expression_laplacian(shape_correlation_matrix(ds))
     GtG = G.T @ G
