@@ -14,7 +14,13 @@ config.setdefault("params", {})
 for _stage in ("calibrate", "reconstruct", "track", "personalize", "retarget", "report"):
     config["params"].setdefault(_stage, {})
 
-SESSIONS = list(config["sessions"])
+# run_sessions (optional): which of the configured sessions this run builds (default: all of them);
+# lets `--configfile config/ict.yaml` run the ICT tier alone although config/config.yaml is loaded first.
+SESSIONS = list(config.get("run_sessions") or config["sessions"])
+_unknown_sessions = [s for s in SESSIONS if s not in config["sessions"]]
+if _unknown_sessions:
+    raise InputError(f"field 'run_sessions': unknown sessions {_unknown_sessions}", path="config",
+                     fix=f"use names from sessions: {', '.join(config['sessions'])}")
 CHARACTERS = list(config["characters"])
 
 

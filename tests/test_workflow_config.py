@@ -85,3 +85,17 @@ def test_malformed_session_yaml_names_file_and_field(tmp_path, override, field):
 def test_malformed_config_is_rejected(tmp_path):
     r = _dry_run(tmp_path, {"sessions": {"demo": {"path": "x", "synthetic": {"n_cameras": 1}}}})
     assert r.returncode != 0 and "n_cameras" in r.out
+
+
+def test_run_sessions_selects_and_names_unknown(tmp_path):
+    cfg = yaml.safe_load((PROJECT_ROOT / "config" / "config.yaml").read_text())
+    cfg["sessions"]["demo"]["path"] = str(tmp_path / "demo")
+    cfg["sessions"]["real"] = {"path": str(_real_session(tmp_path / "s"))}
+    cfg["run_sessions"] = ["demo"]
+    r = _dry_run(tmp_path, cfg)
+    assert r.returncode == 0, r.out[-3000:]
+    assert "results/demo/report.html" in r.out and "results/real/" not in r.out
+    cfg["run_sessions"] = ["demo", "nosuch"]
+    r = _dry_run(tmp_path, cfg)
+    assert r.returncode != 0
+    assert "run_sessions" in r.out and "nosuch" in r.out
