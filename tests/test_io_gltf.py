@@ -6,6 +6,7 @@ from __future__ import annotations
 import base64
 import json
 import struct
+import warnings
 
 import numpy as np
 import pytest
@@ -95,3 +96,159 @@ def test_gltf_uv_split_duplicates_the_shared_vertex(tmp_path):
     assert sorted(src) == [0, 1, 1, 2, 3, 4]
     uv = acc(prim["attributes"]["TEXCOORD_0"])
     np.testing.assert_allclose(sorted(uv[:, 1]), sorted(1 - np.array([0, 0, 1, 1, 0.5, 0.1])), atol=1e-7)
+
+
+# ------------------------------------------------------------------ independent reader: pygltflib only
+pygltflib = pytest.importorskip("pygltflib")  # pinned in pyproject (1.16.5); the checks below use it alone
+from pygltflib.validator import validate as pygltflib_validate  # noqa: E402
+
+from rigbuild.io.gltf_anim import write_gltf_animation  # noqa: E402
+
+_AXES = "right-handed, +y up, +z towards the face's front (glTF convention)"
+
+
+def random_rig(n_vertices: int = 120, n_shapes: int = 5, seed: int = 0) -> Rig:
+    """A random triangle soup rig in mm with local (sparse) shapes: each moves a random third of the vertices."""
+    rng = np.random.default_rng(seed)
+    verts = rng.normal(size=(n_vertices, 3)) * 40.0 + [0.0, 20.0, 90.0]
+    faces = np.stack([rng.permutation(n_vertices)[:3] for _ in range(2 * n_vertices)])
+    deltas = rng.normal(size=(n_shapes, n_vertices, 3)) * 3.0
+    deltas *= (rng.uniform(size=(n_shapes, n_vertices, 1)) < 0.33)
+    return Rig(verts, deltas, [f"shape_{k}" for k in range(n_shapes)], faces, name="random")
+
+
+def _pyg_load(path):
+    """Load with pygltflib and return (gltf, its binary buffer) - .glb chunk or the embedded data URI."""
+    g = pygltflib.GLTF2().load(str(path))
+    assert len(g.buffers) == 1
+    blob = g.binary_blob()
+    if blob is None:
+        assert g.buffers[0].uri.startswith("data:")
+        blob = g.get_data_from_buffer_uri(g.buffers[0].uri)
+    assert len(blob) >= g.buffers[0].byteLength
+    with warnings.catch_warnings():  # pygltflib marks its validator 'provisional'
+        warnings.simplefilter("ignore", UserWarning)
+        pygltflib_validate(g)  # pygltflib's own checks (accessors, buffer views, meshes, animations); raises
+    return g, blob
+
+
+_DTYPES = {pygltflib.FLOAT: "<f4", pygltflib.UNSIGNED_INT: "<u4", pygltflib.UNSIGNED_SHORT: "<u2"}
+_NCOMP = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+
+
+def _pyg_accessor(g, blob, index: int) -> np.ndarray:
+    """Decode accessor ``index`` through pygltflib's accessor / bufferView objects (dense and sparse)."""
+    a = g.accessors[index]
+    n = _NCOMP[a.type]
+    dt = np.dtype(_DTYPES[a.componentType])
+    if a.bufferView is None:
+        out = np.zeros((a.count, n), dt)
+    else:
+        v = g.bufferViews[a.bufferView]
+        assert v.byteStride in (None, 0, dt.itemsize * n)  # tightly packed
+        start = (v.byteOffset or 0) + (a.byteOffset or 0)
+        assert start + a.count * n * dt.itemsize <= (v.byteOffset or 0) + v.byteLength
+        out = np.frombuffer(blob, dt, count=a.count * n, offset=start).reshape(a.count, n).copy()
+    if a.sparse is not None:
+        iv, vv = g.bufferViews[a.sparse.indices.bufferView], g.bufferViews[a.sparse.values.bufferView]
+        idx = np.frombuffer(blob, _DTYPES[a.sparse.indices.componentType], count=a.sparse.count,
+                            offset=(iv.byteOffset or 0) + (a.sparse.indices.byteOffset or 0))
+        val = np.frombuffer(blob, dt, count=a.sparse.count * n,
+                            offset=(vv.byteOffset or 0) + (a.sparse.values.byteOffset or 0)).reshape(-1, n)
+        out[idx] = val
+    return out
+
+
+def _check_minmax(acc, data: np.ndarray) -> None:
+    np.testing.assert_array_equal(np.asarray(acc.min, np.float32), data.min(0))
+    np.testing.assert_array_equal(np.asarray(acc.max, np.float32), data.max(0))
+
+
+@pytest.mark.parametrize("suffix", [".gltf", ".glb"])
+@pytest.mark.parametrize("make", ["small", "small_uv", "random"])
+def test_rig_loaded_by_pygltflib(tmp_path, suffix, make):
+    rig = {"small": lambda: small_rig(False), "small_uv": lambda: small_rig(True), "random": random_rig}[make]()
+    p = tmp_path / f"rig{suffix}"
+    write_gltf_rig(p, rig)
+    g, blob = _pyg_load(p)
+    assert g.asset.version == "2.0"
+    ex = g.asset.extras
+    assert (ex["units"], ex["source_units"], ex["scale"], ex["axes"]) == ("m", "mm", 0.001, _AXES)
+    assert len(g.meshes) == 1 and len(g.meshes[0].primitives) == 1
+    mesh, prim = g.meshes[0], g.meshes[0].primitives[0]
+    assert g.nodes[g.scenes[g.scene].nodes[0]].mesh == 0
+    assert prim.mode == pygltflib.TRIANGLES
+    # one morph target per shape, named in mesh.extras.targetNames, default weights 0
+    assert len(prim.targets) == rig.n_shapes
+    assert mesh.extras["targetNames"] == list(rig.shape_names)
+    assert mesh.weights == [0.0] * rig.n_shapes
+    # glTF vertex -> rig vertex (identity unless UV seams split vertices)
+    src = np.asarray(mesh.extras.get("sourceVertex", np.arange(rig.n_vertices)))
+    n_gl = src.size
+    assert (n_gl > rig.n_vertices) == (make == "small_uv")
+    a_pos = g.accessors[prim.attributes.POSITION]
+    assert a_pos.count == n_gl and a_pos.type == "VEC3" and a_pos.componentType == pygltflib.FLOAT
+    pos = _pyg_accessor(g, blob, prim.attributes.POSITION)
+    expect = (rig.neutral[src] * 1e-3).astype(np.float32)
+    np.testing.assert_array_equal(pos, expect)  # float32 written, float32 read: bit exact
+    np.testing.assert_allclose(pos.astype(np.float64) * 1e3, rig.neutral[src], rtol=1e-6, atol=1e-4)
+    _check_minmax(a_pos, pos)
+    tris = _pyg_accessor(g, blob, prim.indices).reshape(-1, 3)
+    assert g.accessors[prim.indices].count == rig.faces.size
+    np.testing.assert_array_equal(src[tris], rig.faces)
+    for k, tgt in enumerate(prim.targets):
+        a = g.accessors[tgt["POSITION"]]
+        assert a.count == n_gl and a.type == "VEC3"
+        d = _pyg_accessor(g, blob, tgt["POSITION"])
+        np.testing.assert_array_equal(d, (rig.deltas[k][src] * 1e-3).astype(np.float32))
+        np.testing.assert_allclose(d.astype(np.float64) * 1e3, rig.deltas[k][src], rtol=1e-6, atol=1e-4)
+        _check_minmax(a, d)
+    if make == "small_uv":
+        uv = _pyg_accessor(g, blob, prim.attributes.TEXCOORD_0)
+        assert uv.shape == (n_gl, 2) and np.all((uv >= 0) & (uv <= 1))
+
+
+@pytest.mark.parametrize("make", ["small", "random"])
+def test_weight_animation_loaded_by_pygltflib(tmp_path, make):
+    rig = small_rig(False) if make == "small" else random_rig(seed=1)
+    rng = np.random.default_rng(7)
+    F, fps = 17, 24.0
+    W = rng.uniform(0, 1, size=(F, rig.n_shapes))
+    p = tmp_path / "anim.gltf"
+    write_gltf_animation(p, rig, W, fps)
+    g, blob = _pyg_load(p)
+    ex = g.asset.extras
+    assert (ex["units"], ex["source_units"], ex["scale"], ex["axes"]) == ("m", "mm", 0.001, _AXES)
+    assert ex["fps"] == fps and ex["n_frames"] == F
+    mesh, prim = g.meshes[0], g.meshes[0].primitives[0]
+    assert mesh.extras["targetNames"] == list(rig.shape_names)
+    assert len(prim.targets) == rig.n_shapes and mesh.weights == [0.0] * rig.n_shapes
+    pos = _pyg_accessor(g, blob, prim.attributes.POSITION)
+    assert g.accessors[prim.attributes.POSITION].count == rig.n_vertices
+    np.testing.assert_array_equal(pos, (rig.neutral * 1e-3).astype(np.float32))
+    _check_minmax(g.accessors[prim.attributes.POSITION], pos)
+    np.testing.assert_array_equal(_pyg_accessor(g, blob, prim.indices).reshape(-1, 3), rig.faces)
+    n_sparse = 0
+    for k, tgt in enumerate(prim.targets):
+        a = g.accessors[tgt["POSITION"]]
+        assert a.count == rig.n_vertices
+        n_sparse += a.sparse is not None and a.sparse.count < rig.n_vertices
+        d = _pyg_accessor(g, blob, tgt["POSITION"])
+        np.testing.assert_array_equal(d, (rig.deltas[k] * 1e-3).astype(np.float32))
+        _check_minmax(a, d)
+    assert n_sparse == rig.n_shapes  # every shape moves only some vertices: all targets are sparse
+    # the animation: one channel driving the mesh node's morph weights
+    assert len(g.animations) == 1
+    anim = g.animations[0]
+    assert len(anim.channels) == 1
+    ch = anim.channels[0]
+    assert ch.target.path == "weights" and g.nodes[ch.target.node].mesh == 0
+    smp = anim.samplers[ch.sampler]
+    assert smp.interpolation == "LINEAR"
+    t = _pyg_accessor(g, blob, smp.input)[:, 0]
+    np.testing.assert_array_equal(t, (np.arange(F) / fps).astype(np.float32))
+    assert g.accessors[smp.input].min == [0.0] and g.accessors[smp.input].max[0] == pytest.approx((F - 1) / fps)
+    a_out = g.accessors[smp.output]
+    assert a_out.count == F * rig.n_shapes
+    w = _pyg_accessor(g, blob, smp.output).reshape(F, rig.n_shapes)
+    np.testing.assert_array_equal(w, W.astype(np.float32))

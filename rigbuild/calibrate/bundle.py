@@ -29,6 +29,7 @@ import numpy as np
 from scipy.sparse import lil_matrix
 
 from rigbuild.calibrate.rotations import rodrigues
+from rigbuild.progress import progress
 
 N_CAM = 15  # rx ry rz tx ty tz fx fy cx cy k1 k2 p1 p2 k3
 N_BOARD = 6  # rx ry rz tx ty tz (board-to-world)
@@ -232,7 +233,7 @@ def bundle_adjust(
     cost = costs.sum()
     lam = 1e-3
     status, message = 0, "maximum number of iterations reached"
-    for _ in range(max_iterations):
+    for _ in progress(range(max_iterations), "bundle adjustment", unit="iteration"):
         H, g = normal_equations(full, r, w)
         diag = np.diag(H).copy()
         diag[diag <= 0] = 1.0

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from rigbuild.errors import InputError
+from rigbuild.progress import progress
 from rigbuild.session import BoardSpec
 
 _PNG_END = b"IEND\xaeB`\x82"
@@ -153,7 +154,7 @@ def detect_images(
     out: dict[str, dict[str, Detection]] = {}
     for cam, views in images.items():
         out[cam] = {}
-        for key, path in views.items():
+        for key, path in progress(views.items(), f"board detection {cam}", total=len(views), unit="image"):
             out[cam][key] = detect_board(read_gray(path, image_size), board, subpix_window)
     return out
 

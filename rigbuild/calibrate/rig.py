@@ -23,6 +23,7 @@ from rigbuild.calibrate.intrinsics import calibrate_intrinsics, calibration_flag
 from rigbuild.calibrate.posegraph import PoseGraph, build_pose_graph
 from rigbuild.calibrate.rotations import rodrigues, rotation_to_rvec
 from rigbuild.camera import Camera
+from rigbuild.progress import progress
 from rigbuild.session import BoardSpec
 
 
@@ -200,7 +201,7 @@ def calibrate_rig(
     flags = calibration_flags(fix_k3=opt.fix_k3)
     intr = {}
     view_poses: dict[str, dict] = {}
-    for c in cam_ids:
+    for c in progress(cam_ids, "intrinsic calibration", unit="camera"):
         obj = [pts[detections[c][v].ids] for v in usable[c]]
         img = [detections[c][v].corners for v in usable[c]]
         intr[c] = calibrate_intrinsics(obj, img, image_size, flags=flags, camera=c)

@@ -3,8 +3,9 @@ animation whose channel drives the mesh node's ``weights`` over time.
 
 Self-contained (one ``.gltf`` JSON with the binary buffer embedded as a base64 data URI, so the file can be
 written atomically and opened in Blender / three.js / any glTF viewer). Positions are written in metres (the
-glTF unit), converted from the rig's units. Morph targets are stored as sparse accessors (only the
-vertices a shape moves), so a 26k-vertex, 53-shape ICT rig stays small.
+glTF unit), converted from the rig's units; ``asset.extras`` records ``units`` ("m"), ``source_units``,
+``scale`` (rig units -> m), ``axes``, ``fps`` and ``n_frames``. Morph targets are stored as sparse accessors
+(only the vertices a shape moves), so a 26k-vertex, 53-shape ICT rig stays small.
 """
 
 from __future__ import annotations
@@ -92,7 +93,10 @@ def gltf_animation_document(
     data = b"".join(buf.chunks)
     label = name or rig.name
     return {
-        "asset": {"version": "2.0", "generator": "rigbuild.io.gltf_anim"},
+        "asset": {"version": "2.0", "generator": "rigbuild.io.gltf_anim",
+                  "extras": {"units": "m", "source_units": rig.units, "scale": to_m,
+                             "axes": "right-handed, +y up, +z towards the face's front (glTF convention)",
+                             "fps": float(fps), "n_frames": int(F)}},
         "scene": 0,
         "scenes": [{"nodes": [0]}],
         "nodes": [{"mesh": 0, "name": label}],

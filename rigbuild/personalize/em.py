@@ -31,6 +31,7 @@ from rigbuild.errors import InputError, RigbuildError
 from rigbuild.personalize.rigid import fit_frame_rigid, to_rig_frame
 from rigbuild.personalize.shapes import ShapeUpdate
 from rigbuild.personalize.weights import solve_box_qp, weight_qp
+from rigbuild.progress import progress
 
 log = logging.getLogger(__name__)
 
@@ -279,7 +280,7 @@ class FrameFitter:
     def sweep(self, W: np.ndarray, R: np.ndarray, t: np.ndarray, warm_start: bool = False) -> None:
         """One pass over the kept frames in order. ``warm_start``: a frame contiguous with the previous
         one starts from its solution (first pass only)."""
-        for i in np.flatnonzero(self.kept):
+        for i in progress(np.flatnonzero(self.kept), "weight fits", unit="frame"):
             if warm_start and self.prev[i]:
                 W[i], R[i], t[i] = W[i - 1], R[i - 1], t[i - 1]
             self.fit_frame(int(i), W, R, t)
@@ -470,7 +471,7 @@ def personalize(
     J = record(0, "weights")
     residual_initial = objective[-1]["rms_mm"]
     kept_idx = np.flatnonzero(kept)
-    for it in range(1, p.max_iterations + 1):
+    for it in progress(range(1, p.max_iterations + 1), "EM iterations", unit="iteration"):
         J_prev = J
         t0 = time.perf_counter()
         W_hat = np.concatenate([np.ones((Nf, 1)), W], axis=1)[kept_idx]

@@ -11,6 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from rigbuild.camera import Camera
+from rigbuild.progress import progress
 
 
 def backproject_pixels(camera: Camera, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -74,14 +75,16 @@ def point_map(depth: np.ndarray, camera: Camera) -> np.ndarray:
     return ((Xc - camera.t.astype(np.float32)) @ camera.R.astype(np.float32)).astype(np.float32)
 
 
-def _map_views(fn, n: int, threads: int) -> list:
-    """``[fn(0), ..., fn(n - 1)]``, on a thread pool when ``threads > 1``."""
+def _map_views(fn, n: int, threads: int, desc: str | None = None) -> list:
+    """``[fn(0), ..., fn(n - 1)]``, on a thread pool when ``threads > 1``; ``desc``: label of a progress bar
+    (shown only on a terminal)."""
+    bar = (lambda it: progress(it, desc, total=n, unit="view")) if desc else (lambda it: it)
     if threads <= 1 or n <= 1:
-        return [fn(k) for k in range(n)]
+        return [fn(k) for k in bar(range(n))]
     from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(max_workers=threads) as ex:
-        return list(ex.map(fn, range(n)))
+        return list(bar(ex.map(fn, range(n))))
 
 
 @dataclass

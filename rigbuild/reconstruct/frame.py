@@ -170,7 +170,7 @@ def reconstruct_frame(images: Sequence[np.ndarray | None], cameras: Sequence[Cam
         rng = sp.depth_range_mm or auto_depth_range(pcams[i], pcams, sp.auto_depth_radius_mm)
         return compute_depth_map(i, gray, pcams, nbrs[i], sp, mask=masks[i], depth_range=rng)
 
-    results = _map_views(stereo_view, len(pcams), params.threads)
+    results = _map_views(stereo_view, len(pcams), params.threads, desc="stereo depth maps")
     raw = [r.depth for r in results]
     scores = [r.score for r in results]
     t2, c2 = time.perf_counter(), time.process_time()

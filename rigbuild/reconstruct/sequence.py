@@ -26,6 +26,7 @@ import numpy as np
 
 from rigbuild.camera import Camera
 from rigbuild.errors import InputError
+from rigbuild.progress import progress
 from rigbuild.reconstruct.frame import FrameReconstruction, ReconstructParams, reconstruct_frame
 from rigbuild.reconstruct.stereo import pinhole
 
@@ -229,7 +230,7 @@ def reconstruct_sequence(image_path: Callable[[str, int], Path], cameras: Sequen
     image_path(camera_id, frame) -> the image file.
     """
     records = [process_frame(f, [image_path(c.id, f) for c in cameras], cameras, params, out_dir, name, log, evaluate)
-               for f in frames]
+               for f in progress(frames, f"reconstructing {name}", total=len(frames), unit="frame")]
     return summarize_sequence(records, [c.id for c in cameras], out_dir, name)
 
 
@@ -262,7 +263,7 @@ def run_frame_job(session_root: str | os.PathLike, sequence: str, frames: Sequen
     evaluator = SequenceEvaluator(session_root, sequence, cams) \
         if SequenceEvaluator.available(session_root, sequence) else None
     records = []
-    for f in frames:
+    for f in progress(frames, f"reconstructing {sequence}", total=len(frames), unit="frame"):
         rec = process_frame(f, [spec.rom_image(sequence, c.id, f) for c in cams], cams, p, out_dir, sequence, log,
                             evaluator)
         write_json(Path(out_dir) / "frames" / f"{f:06d}.json", rec)

@@ -17,6 +17,7 @@ from typing import Any, Mapping, Sequence
 
 from rigbuild.eval.thresholds import status
 from rigbuild.io.metrics import flatten_metrics
+from rigbuild.progress import progress
 
 
 @dataclass
@@ -107,7 +108,7 @@ def build_report(results_dir: str | os.PathLike, session: str, metrics: Mapping[
     results_dir = Path(results_dir)
     parts, totals = [], {"pass": 0, "warn": 0, "fail": 0}
     nav = []
-    for sec in SECTIONS:
+    for sec in progress(SECTIONS, "report sections", unit="section"):
         stages = [sec.stage] if isinstance(sec.stage, str) else list(sec.stage)
         table, counts = _metric_rows(metrics, stages, thresholds)
         for k in totals:
