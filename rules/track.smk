@@ -60,15 +60,20 @@ rule track_metrics:
     input:
         seq_metrics=lambda wc: [f"results/{wc.session}/track/{s.name}/track_metrics.json"
                                 for s in session_spec(wc.session).rom],
+        vertices=lambda wc: [f"results/{wc.session}/track/{s.name}/vertices.npz" for s in session_spec(wc.session).rom],
+        neutral="results/{session}/track/neutral.npz",
+        cameras="results/{session}/calib/cameras.json",
     output:
         summary="results/{session}/track/track_summary.json",
     params:
+        track=lambda wc: config["params"].get("track", {}),
+        session_dir=lambda wc: str(session_dir(wc.session)),
         metrics=lambda wc: f"results/{wc.session}/metrics.json",
     log:
         "logs/{session}/track/metrics.log",
     threads: 1
     resources:
-        mem_mb=500,
+        mem_mb=2000,
     conda:
         "../environment.yml"
     script:

@@ -1,8 +1,8 @@
 """Snakemake entry point of the tracking stage (rules track_neutral and track_sequence in rules/track.smk).
 
 Reads the session, calibrated cameras, ROM images and the reconstruction's depth maps; writes the outputs
-atomically and merges ``tracking.*`` into ``results/<session>/metrics.json``. Ground truth is read only
-through :mod:`rigbuild.eval` (when ``ground_truth/`` exists) to add accuracy metrics.
+atomically and merges ``tracking.*`` into ``results/<session>/metrics.json``. Only the session-level metrics
+job (rule track_metrics) reads ``ground_truth/``, through :mod:`rigbuild.eval`, to add accuracy metrics.
 """
 
 
@@ -109,16 +109,6 @@ def run_neutral(smk) -> None:
              dot_labels=reg.dot_labels, sequence=np.asarray(seq.name), frame=np.int64(seq.neutral_frame))
     values = {"neutral_scan_rms_mm": reg.scan_rms_mm, "neutral_dot_rms_mm": reg.dot_rms_mm,
               "neutral_dots_matched": int((reg.dot_labels >= 0).sum()), "neutral_seconds": time.perf_counter() - t0}
-    gt = session_root / "ground_truth" / "rom" / f"{seq.name}.npz"
-    if gt.exists():
-        with np.load(gt) as z:
-            truth = z["vertices"][list(z["frames"]).index(seq.neutral_frame)] if "frames" in z else z["vertices"][0]
-        from rigbuild.eval.frames import calibrated_to_ground_truth, points_to_ground_truth
-
-        sim = calibrated_to_ground_truth(session_root / "ground_truth", smk.input.cameras)
-        est = points_to_ground_truth(reg.vertices[template.face_vertices], sim)
-        e = np.linalg.norm(est - truth[template.face_vertices], axis=1)
-        values["neutral_error_mm"] = float(e.mean())
     merge_metrics(smk.params.metrics, "tracking", values)
 
 
@@ -207,24 +197,6 @@ def run_sequence(smk) -> None:
                    "seconds_per_frame": seconds / max(len(frame_ids), 1),
                    "median_residual_mm": float(np.nanmedian([s.residual_median_mm for s in stats])),
                    "lost": [s.frame for s in stats if s.lost]}
-    gt = session_root / "ground_truth" / "rom" / f"{seq.name}.npz"
-    if gt.exists():  # evaluation only (rigbuild.eval), never used by the tracking itself
-        from rigbuild.eval.tracking import tracking_summary
-
-        with np.load(gt) as z:
-            fr = list(z["frames"]) if "frames" in z else list(seq.frames)
-            truth = z["vertices"][[fr.index(f) for f in frame_ids]]
-        gt0 = session_root / "ground_truth" / "rom" / f"{anchor_seq.name}.npz"
-        with np.load(gt0) as z:
-            fr0 = list(z["frames"]) if "frames" in z else list(anchor_seq.frames)
-            truth_neutral = z["vertices"][fr0.index(anchor_seq.neutral_frame)]
-        from rigbuild.eval.frames import calibrated_to_ground_truth, points_to_ground_truth
-
-        sim = calibrated_to_ground_truth(session_root / "ground_truth", smk.input.cameras)
-        s = tracking_summary(points_to_ground_truth(V, sim), truth, template.faces, template.face_vertices,
-                             points_to_ground_truth(neutral, sim), truth_neutral)
-        seq_metrics.update({k: v for k, v in s.items() if not k.endswith("errors")})
-        save_npz(Path(out.metrics).with_name("errors.npz"), errors=s["errors"].astype(np.float32))
     write_json(out.metrics, seq_metrics)
     merge_metrics(smk.params.metrics, "tracking", {f"{seq.name}_lost_frames": seq_metrics["lost_frames"],
                                                    f"{seq.name}_seconds_per_frame": seq_metrics["seconds_per_frame"]})
@@ -242,31 +214,31 @@ def main(smk) -> None:
 
 
 def run_metrics(smk) -> None:
-    """Session-level tracking metrics from the per-sequence metrics (GT error keys when present)."""
+    """Session-level tracking metrics: lost frames from the per-sequence metrics and, for a synthetic session
+    (``ground_truth/`` present), the accuracy against ground truth (rigbuild.eval; the tracking jobs
+    themselves never read it)."""
     import json
 
-    per = {}
-    errs = []
-    ends = []
-    lost = 0
-    for p in smk.input.seq_metrics:
-        d = json.loads(Path(p).read_text())
-        per[Path(p).parent.name] = d
-        lost += int(d.get("lost_frames", 0))
-        e = Path(p).with_name("errors.npz")
-        if e.exists():
-            with np.load(e) as z:
-                errs.append(z["errors"])
-            ends.append(d["end_error_mm"])
-    values = {"lost_frames": lost, "sequences": len(per)}
-    if errs:
-        allv = np.concatenate([e.ravel() for e in errs])
-        values.update({"mean_error_mm": float(allv.mean()), "p95_error_mm": float(np.percentile(allv, 95)),
-                       "end_drift_mm": float(np.mean(ends))})
-        corr = [d["corr_mean_error_mm"] for d in per.values() if "corr_mean_error_mm" in d]
-        if corr:
-            values["corr_mean_error_mm"] = float(np.mean(corr))
-            values["corr_end_drift_mm"] = float(np.mean([d["corr_end_error_mm"] for d in per.values()]))
+    from rigbuild.eval.tracking import ground_truth_tracking_metrics
+
+    per = {Path(p).parent.name: json.loads(Path(p).read_text()) for p in smk.input.seq_metrics}
+    values = {"lost_frames": int(sum(int(d.get("lost_frames", 0)) for d in per.values())), "sequences": len(per)}
+    gt_dir = Path(smk.params.session_dir) / "ground_truth"
+    if gt_dir.is_dir():
+        spec = read_session(Path(smk.params.session_dir))
+        template = _template(spec, dict(smk.params.track))
+        with np.load(smk.input.neutral) as z:
+            neutral = z["vertices"].astype(np.float64)
+            neutral_at = (str(z["sequence"]), int(z["frame"]))
+        tracked = {}
+        for p in smk.input.vertices:
+            with np.load(p) as z:
+                tracked[Path(p).parent.name] = (z["vertices"].astype(np.float64), z["frames"].astype(np.int64))
+        gt_values, gt_per = ground_truth_tracking_metrics(gt_dir, smk.input.cameras, template.faces,
+                                                          template.face_vertices, neutral, neutral_at, tracked)
+        values.update(gt_values)
+        for name, d in gt_per.items():
+            per[name].update(d)
     merge_metrics(smk.params.metrics, "tracking", values)
     write_json(smk.output.summary, {"tracking": values, "sequences": per})
 

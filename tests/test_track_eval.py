@@ -38,3 +38,42 @@ def test_surface_anchors_exact():
     V, F = _mesh()
     tri, bary = surface_anchors(np.array([[2.0, 3.0, 1.0], [9.0, 8.0, -2.0]]), V, F)
     np.testing.assert_allclose(np.einsum("nk,nkd->nd", bary, V[F[tri]]), [[2, 3, 0], [9, 8, 0]], atol=1e-12)
+
+
+def test_ground_truth_tracking_metrics_from_files_exact(tmp_path):
+    """Estimates in a calibrated world rotated 90 deg about z and shifted: mapped back exactly by the
+    camera-centre similarity; a 0.2 mm offset of the last frame is the end drift."""
+    from rigbuild.camera import Camera, look_at
+    from rigbuild.eval.tracking import ground_truth_tracking_metrics
+    from rigbuild.io.cameras import write_cameras
+
+    V, F = _mesh()
+    K = np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]])
+    truth_cams = []
+    for i, eye in enumerate([[0, 0, 500], [300, 0, 400], [-300, 0, 400], [0, 300, 400]]):
+        R, t = look_at(np.array(eye, float), np.zeros(3), np.array([0, 1.0, 0]))
+        truth_cams.append(Camera(f"cam{i:02d}", 640, 480, K, np.zeros(5), R, t))
+    Rz = np.array([[0, -1.0, 0], [1, 0, 0], [0, 0, 1]])
+    shift = np.array([5.0, -3.0, 2.0])  # calibrated world: x_cal = Rz x_gt + shift
+
+    def to_cal(x):
+        return x @ Rz.T + shift
+
+    cal_cams = [Camera(c.id, c.width, c.height, c.K, c.dist, c.R @ Rz.T, c.t - c.R @ Rz.T @ shift) for c in truth_cams]
+    gt = tmp_path / "ground_truth"
+    (gt / "rom").mkdir(parents=True)
+    write_cameras(gt / "cameras.json", truth_cams)
+    write_cameras(tmp_path / "cameras.json", cal_cams)
+    truth = np.stack([V, V + [0, 0, 1.0], V])
+    np.savez(gt / "rom" / "rom00.npz", vertices=truth.astype(np.float32), frames=np.array([0, 1, 2]))
+    tracked = truth.copy()
+    tracked[2] += [0, 0.2, 0]
+    values, per = ground_truth_tracking_metrics(gt, tmp_path / "cameras.json", F, np.arange(4), to_cal(V),
+                                                ("rom00", 0), {"rom00": (to_cal(tracked), np.array([0, 1, 2]))})
+    assert values["neutral_error_mm"] == pytest.approx(0.0, abs=1e-5)
+    assert values["mean_error_mm"] == pytest.approx(0.2 / 3, abs=1e-5)
+    assert values["end_drift_mm"] == pytest.approx(0.2, abs=1e-5)
+    assert per["rom00"]["first_error_mm"] == pytest.approx(0.0, abs=1e-5)
+    assert "errors" not in per["rom00"]
+    with pytest.raises(ValueError, match="no frames"):
+        ground_truth_tracking_metrics(gt, tmp_path / "cameras.json", F, np.arange(4), V, ("rom00", 7), {})

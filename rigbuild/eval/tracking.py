@@ -83,3 +83,43 @@ def session_tracking_metrics(summaries: dict[str, dict]) -> dict:
         out.update({"corr_mean_error_mm": float(c.mean()), "corr_p95_error_mm": float(np.percentile(c, 95)),
                     "corr_end_drift_mm": float(np.mean([s["corr_end_error_mm"] for s in summaries.values()]))})
     return out
+
+
+def _truth_frames(gt_dir, sequence: str, frame_ids) -> np.ndarray:
+    """Ground-truth vertices (F, V, 3) mm of ``frame_ids`` of ``ground_truth/rom/<sequence>.npz``."""
+    from pathlib import Path
+
+    with np.load(Path(gt_dir) / "rom" / f"{sequence}.npz") as z:
+        fr = [int(f) for f in z["frames"]] if "frames" in z else list(range(z["vertices"].shape[0]))
+        missing = [int(f) for f in frame_ids if int(f) not in fr]
+        if missing:
+            raise ValueError(f"ground truth of {sequence} has no frames {missing}")
+        return z["vertices"][[fr.index(int(f)) for f in frame_ids]].astype(np.float64)
+
+
+def ground_truth_tracking_metrics(gt_dir, cameras, faces: np.ndarray, face_vertices: np.ndarray,
+                                  neutral: np.ndarray, neutral_at: tuple[str, int],
+                                  sequences: dict[str, tuple[np.ndarray, np.ndarray]]) -> tuple[dict, dict]:
+    """Tracking accuracy of a synthetic session against its ``ground_truth/`` folder.
+
+    gt_dir : the session's ground_truth folder; cameras : the calibrated ``cameras.json`` (estimates are
+    mapped into the ground-truth world by the camera-centre similarity); faces (T, 3), face_vertices (R,) of
+    the template; neutral (V, 3) mm: the registered neutral, taken at ``neutral_at`` = (sequence, frame);
+    sequences : name -> (tracked vertices (F, V, 3) mm, frame ids (F,)).
+    Returns (session values: neutral_error_mm + :func:`session_tracking_metrics`, per-sequence summaries
+    without the error arrays).
+    """
+    from rigbuild.eval.frames import calibrated_to_ground_truth, points_to_ground_truth
+
+    sim = calibrated_to_ground_truth(gt_dir, cameras)
+    neutral_gt = points_to_ground_truth(np.asarray(neutral, np.float64), sim)
+    truth_neutral = _truth_frames(gt_dir, neutral_at[0], [neutral_at[1]])[0]
+    values = {"neutral_error_mm": float(vertex_errors(neutral_gt[None], truth_neutral[None], face_vertices).mean())}
+    summaries = {}
+    for name, (V, frame_ids) in sequences.items():
+        summaries[name] = tracking_summary(points_to_ground_truth(np.asarray(V, np.float64), sim),
+                                           _truth_frames(gt_dir, name, frame_ids), faces, face_vertices,
+                                           neutral_gt, truth_neutral)
+    values.update(session_tracking_metrics(summaries))
+    per = {n: {k: v for k, v in s.items() if not k.endswith("errors")} for n, s in summaries.items()}
+    return values, per
