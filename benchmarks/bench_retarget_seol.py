@@ -9,10 +9,16 @@
    options (gap masking, prior strength as a corner frequency, combination-trained prior, uniform
    Sobolev term, scale matching off): fig. 11 velocity error and mean per-shape correlation.
 4. Clean ceilings: the exact unconstrained fit per actor perturbation (each switched off in turn) and
-   character, with and without the RBF scale matching; they bound every marker-based method.
+   character, with the paper's RBF scale matching, with deformation-transfer scale matching and
+   without any; they bound every marker-based method.
+5. Scale-proportion matching modes (rigbuild.retarget.proportion) on the exact fit: the paper's RBF
+   evaluation f(m+d)-f(m), the RBF's Jacobian, C^1 kernels (r^3, thin plate) both ways, per-marker
+   local affine maps, the affine part, none, and deformation transfer onto the RBF-warped mesh;
+   mean correlation, median relative marker-delta error, and the stylized character's worst shapes.
 
-Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_retarget_seol.py
-Writes benchmarks/out/retarget_seol.json.
+Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_retarget_seol.py [--sections a,b]
+(sections: table_i, edit, accuracy, ceiling, scale_match; default all; sections not run are kept
+from the previous benchmarks/out/retarget_seol.json). Writes benchmarks/out/retarget_seol.json.
 """
 
 from __future__ import annotations
@@ -22,6 +28,8 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+import argparse  # noqa: E402
+import json  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -120,7 +128,9 @@ def _configs(K, M, fps):
     from rigbuild.retarget.seol import sparse_combination_weights
 
     combos = sparse_combination_weights(K, 2000, density=0.15, seed=0)
-    sobolev = np.full(M, (2 * np.pi * 1.0 / fps) ** 2)  # uniform sec. 7.1 term, position wins below ~1 Hz
+    from rigbuild.retarget.seol import sobolev_beta_from_corner_hz
+
+    sobolev = sobolev_beta_from_corner_hz(M, 1.0, fps)  # uniform sec. 7.1 term, position wins below ~1 Hz
     return {
         # the paper's alpha; gaps interpolated (the previous default)
         "paper_alpha_0.01": dict(alpha=0.01, gaps="interpolate"),
@@ -135,6 +145,16 @@ def _configs(K, M, fps):
         "recommended_0.1Hz": dict(prior_corner_hz=0.1, fps=fps, prior_training=combos, beta=sobolev),
         "recommended_rbf_off": dict(prior_corner_hz=0.03, fps=fps, prior_training=combos, beta=sobolev,
                                     scale_match="none"),
+        # scale matching by deformation transfer onto the RBF-warped target mesh (option beside sec. 3.2)
+        "recommended_deformation": dict(prior_corner_hz=0.03, fps=fps, prior_training=combos, beta=sobolev,
+                                        scale_match="deformation"),
+        # exactly config/config.yaml params.retarget.seol (no Sobolev term; Range-PF boundary values)
+        "config_yaml": dict(prior_corner_hz=0.03, fps=fps, prior_training=combos, boundary_values="perframe"),
+        "config_yaml_deformation": dict(prior_corner_hz=0.03, fps=fps, prior_training=combos,
+                                        boundary_values="perframe", scale_match="deformation"),
+        # the proposed config: config_yaml + scale_match deformation + sobolev_corner_hz 1.0
+        "proposed_config": dict(prior_corner_hz=0.03, fps=fps, prior_training=combos, boundary_values="perframe",
+                                scale_match="deformation", beta=sobolev),
     }
 
 
@@ -165,7 +185,7 @@ def accuracy(n_frames=600, fps=60.0):
             m["alpha"] = res.alpha
             m["corner_hz"] = corner_hz_from_alpha(res.alpha, res.system.B, res.system.prior_P, fps)
             m["seconds_with_baselines"] = time.perf_counter() - t0
-            if name == "recommended":
+            if name in ("recommended", "recommended_deformation", "proposed_config"):
                 r = per_shape_correlation(res.weights, case["weights"])
                 names = template.shape_names
                 worst = [k for k in np.argsort(np.where(shapes, r, 9.0)) if shapes[k]][:8]
@@ -197,6 +217,9 @@ def ceiling_ablation(template, chars, n_frames=600, fps=60.0):
     variants = {"all_perturbations": {}, **{f"no_{k}": v for k, v in off.items()}, "no_identity": "identity",
                 "only_tilt": {k: v for n, d in off.items() if n != "tilt" for k, v in d.items()},
                 "none": {k: v for d in off.values() for k, v in d.items()}}
+    from rigbuild.retarget.proportion import proportion_match
+
+    dt_cache = {}
     rows = {}
     for vname, kw in variants.items():
         if kw == "identity":
@@ -210,48 +233,150 @@ def ceiling_ablation(template, chars, n_frames=600, fps=60.0):
         for kind, char in chars.items():
             n, d = char.neutral[mv], char.deltas[:, mv]
             _, d_rbf, _ = scale_proportion_match(n, d, actor.neutral[mv])
-            for lab, D in (("rbf", d_rbf), ("no_scale_match", d)):
+            key = (kind, actor.neutral[mv].tobytes())
+            if key not in dt_cache:
+                dt_cache[key] = proportion_match(n, d, actor.neutral[mv], "deformation", mesh=char,
+                                                 marker_vertices=mv)[1]
+            for lab, D in (("rbf", d_rbf), ("deformation", dt_cache[key]), ("no_scale_match", d)):
                 Wc = np.linalg.lstsq(D.reshape(K, -1).T, S.T, rcond=None)[0].T
                 row[f"{kind}_{lab}"] = mean_correlation(Wc, W, shapes)
         rows[vname] = row
     return rows
 
 
+SCALE_MODES = [("rbf", "r"), ("jacobian", "r"), ("rbf", "r3"), ("jacobian", "r3"), ("rbf", "tps"),
+               ("jacobian", "tps"), ("local_affine", "r"), ("affine", "r"), ("none", "r"), ("deformation", "r"),
+               ("deformation", "r3")]
+
+
+def scale_match_ablation(template, chars, n_frames=600, fps=60.0):
+    """Exact unconstrained fit (no noise, gaps or head motion) with each scale-matching mode, for the
+    actor without perturbations ("none": only its identity differs from the template, so its marker
+    deltas are the template's) and with all of them: mean correlation, the median relative error of
+    the transferred marker deltas against the actor's own deltas, seconds per transfer; for the
+    stylized character and the unperturbed actor also the per-shape correlations of its 10 worst
+    shapes under the paper's RBF."""
+    from rigbuild.eval.seol import evaluated_shapes, neutral_envelope
+    from rigbuild.retarget.common import mean_correlation, per_shape_correlation
+    from rigbuild.retarget.proportion import proportion_match
+    from rigbuild.synth.actor import make_actor_rig
+    from rigbuild.synth.motion import make_performance_weights
+
+    names = template.shape_names
+    K = len(names)
+    mv = template.marker_vertices
+    W = make_performance_weights(names, n_frames, fps, seed=1) * neutral_envelope(n_frames, 30)[:, None]
+    off = dict(intensity_range=(1.0, 1.0), asymmetry=0.0, crosstalk=0.0, warp=0.0, max_tilt_deg=0.0)
+    out = {"modes": [f"{m}/{k}" for m, k in SCALE_MODES], "actors": {}}
+    for aname, kw in (("none", off), ("all_perturbations", {})):
+        actor, _ = make_actor_rig(template, seed=0, **kw)
+        an, ad = actor.neutral[mv], actor.deltas[:, mv]
+        shapes = evaluated_shapes(actor, W)
+        S = W @ ad.reshape(K, -1)
+        norm = np.maximum(np.linalg.norm(ad.reshape(K, -1), axis=1), 1e-12)
+        per_char = {}
+        for kind, char in chars.items():
+            rows, per_shape = {}, {}
+            for mode, kern in SCALE_MODES:
+                t0 = time.perf_counter()
+                _, d, _ = proportion_match(char.neutral[mv], char.deltas[:, mv], an, mode, kern, mesh=char,
+                                           marker_vertices=mv)
+                sec = time.perf_counter() - t0
+                Wc = np.linalg.lstsq(d.reshape(K, -1).T, S.T, rcond=None)[0].T
+                rel = np.linalg.norm((d - ad).reshape(K, -1), axis=1) / norm
+                rows[f"{mode}/{kern}"] = {"mean_correlation": mean_correlation(Wc, W, shapes),
+                                          "median_delta_error": float(np.median(rel[shapes])), "seconds": sec}
+                per_shape[f"{mode}/{kern}"] = per_shape_correlation(Wc, W)
+            entry = {"modes": rows}
+            if kind == "stylized" and aname == "none":
+                sel = np.flatnonzero(shapes)
+                worst = sel[np.argsort(per_shape["rbf/r"][sel])][:10]
+                entry["worst_shapes_rbf"] = {names[k]: {m: float(per_shape[m][k]) for m in per_shape} for k in worst}
+            per_char[kind] = entry
+        out["actors"][aname] = per_char
+    return out
+
+
+def _ict_context(acc_ctx):
+    if acc_ctx is not None:
+        return acc_ctx[0], acc_ctx[2]
+    got = ict_marker_rig()
+    if got is None:
+        return None, None
+    from rigbuild.synth.characters import make_character
+
+    template = got[0]
+    return template, {k: make_character(template, k) for k in ("template", "exaggerated", "stylized")}
+
+
 def main():
-    rows = table_i()
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--sections", default="table_i,edit,accuracy,ceiling,scale_match")
+    sections = set(ap.parse_args().sections.split(","))
+    prev = json.loads(OUT.read_text()) if OUT.exists() else {}
+    result = {k: prev.get(k) for k in ("table_i", "edit", "accuracy", "ceiling_ablation", "scale_match_ablation")}
+    result["goals"] = {"solve_1500_s": 0.1, "edit_12_s": 0.005, "mean_correlation": 0.9}
+    result["load_average"] = os.getloadavg()
+    if "table_i" in sections:
+        result["table_i"] = _print_table_i(table_i())
+    if "edit" in sections:
+        ed = result["edit"] = edit_timing()
+        print(f"edit, 12-frame range of 1500: partial {ed['partial_pose_s'] * 1e3:.2f} ms, full pose "
+              f"{ed['full_pose_s'] * 1e3:.2f} ms, curves only {ed['curves_only_s'] * 1e3:.2f} ms (goal 5 ms)")
+    ctx = None
+    if "accuracy" in sections:
+        acc, ctx = accuracy()
+        result["accuracy"] = acc
+        _print_accuracy(acc)
+    if sections & {"ceiling", "scale_match"}:
+        template, chars = _ict_context(ctx)
+        if template is not None and "ceiling" in sections:
+            ablation = result["ceiling_ablation"] = ceiling_ablation(template, chars)
+            cols = list(next(iter(ablation.values())))
+            print("\nclean ceilings (exact per-frame LS, exact head motion, no noise/gaps): mean correlation")
+            print(f"{'actor':18s} " + " ".join(f"{c:>24s}" for c in cols))
+            for vname, row in ablation.items():
+                print(f"{vname:18s} " + " ".join(f"{row[c]:24.3f}" for c in cols))
+        if template is not None and "scale_match" in sections:
+            sm = result["scale_match_ablation"] = scale_match_ablation(template, chars)
+            print("\nscale-proportion matching, exact fit: mean correlation (median relative delta error)")
+            print(f"{'actor':18s} {'character':12s} " + " ".join(f"{m:>17s}" for m in sm["modes"]))
+            for aname, per_char in sm["actors"].items():
+                for kind, entry in per_char.items():
+                    print(f"{aname:18s} {kind:12s} " + " ".join(
+                        f"{v['mean_correlation']:8.3f} ({v['median_delta_error']:5.2f})" for v in entry["modes"].values()))
+            worst = sm["actors"]["none"]["stylized"]["worst_shapes_rbf"]
+            print("\nstylized, unperturbed actor: worst shapes under the paper's RBF, per mode")
+            for name, per in worst.items():
+                print(f"{name:18s} " + " ".join(f"{v:17.3f}" for v in per.values()))
+    write_json(OUT, result)
+    print(f"wrote {OUT}")
+
+
+def _print_table_i(rows):
     print(f"{'frames':>7} {'paper s':>8} {'solve s':>9} {'whole s':>9} {'x solve':>9} {'x whole':>8}")
     for r in rows:
         print(f"{r['frames']:7d} {r['paper_s']:8.2f} {r['solve_s']:9.4f} {r['whole_method_s']:9.4f} "
               f"{r['speedup_solve']:9.0f} {r['speedup_whole']:8.0f}")
-    ed = edit_timing()
-    print(f"edit, 12-frame range of 1500: partial {ed['partial_pose_s'] * 1e3:.2f} ms, full pose "
-          f"{ed['full_pose_s'] * 1e3:.2f} ms, curves only {ed['curves_only_s'] * 1e3:.2f} ms (goal 5 ms)")
-    acc, ctx = accuracy()
-    ablation = None
-    if "characters" in acc:
-        print(f"\naccuracy on a synthetic ICT actor ({acc['n_frames']} frames @ {acc['fps']:g} fps, "
-              f"{acc['n_markers']} markers, {acc['evaluated_shapes']} evaluated shapes)")
-        print(f"{'character':12s} {'config':22s} {'alpha':>9s} {'f_c Hz':>7s} {'corr':>6s} {'vel.err':>8s} "
-              f"{'RangePF':>8s} {'PriorPF':>8s} {'NoConst':>8s} {'nc corr':>7s} {'range':>14s}")
-        for kind, per in acc["characters"].items():
-            for name, m in per.items():
-                v = m["spacetime"]
-                print(f"{kind:12s} {name:22s} {m['alpha']:9.2e} {m['corner_hz']:7.3f} {v['mean_correlation']:6.3f} "
-                      f"{v['velocity_error']:8.1f} {m['perframe_range']['velocity_error']:8.1f} "
-                      f"{m['perframe_prior']['velocity_error']:8.1f} {m['no_constraint']['velocity_error']:8.1f} "
-                      f"{m['no_constraint']['mean_correlation']:7.3f} [{v['weight_min']:5.2f},{v['weight_max']:5.2f}]")
-        template, case, chars, shapes = ctx
-        ablation = ceiling_ablation(template, chars)
-        cols = list(next(iter(ablation.values())))
-        print("\nclean ceilings (exact per-frame LS, exact head motion, no noise/gaps): mean correlation")
-        print(f"{'actor':18s} " + " ".join(f"{c:>26s}" for c in cols))
-        for vname, row in ablation.items():
-            print(f"{vname:18s} " + " ".join(f"{row[c]:26.3f}" for c in cols))
-    else:
+    return rows
+
+
+def _print_accuracy(acc):
+    if "characters" not in acc:
         print(acc)
-    write_json(OUT, {"table_i": rows, "edit": ed, "accuracy": acc, "ceiling_ablation": ablation,
-                     "goals": {"solve_1500_s": 0.1, "edit_12_s": 0.005, "mean_correlation": 0.9}})
-    print(f"wrote {OUT}")
+        return
+    print(f"\naccuracy on a synthetic ICT actor ({acc['n_frames']} frames @ {acc['fps']:g} fps, "
+          f"{acc['n_markers']} markers, {acc['evaluated_shapes']} evaluated shapes)")
+    print(f"{'character':12s} {'config':24s} {'alpha':>9s} {'f_c Hz':>7s} {'corr':>6s} {'vel.err':>8s} "
+          f"{'RangePF':>8s} {'PriorPF':>8s} {'NoConst':>8s} {'nc corr':>7s} {'range':>14s} {'s':>5s}")
+    for kind, per in acc["characters"].items():
+        for name, m in per.items():
+            v = m["spacetime"]
+            print(f"{kind:12s} {name:24s} {m['alpha']:9.2e} {m['corner_hz']:7.3f} {v['mean_correlation']:6.3f} "
+                  f"{v['velocity_error']:8.1f} {m['perframe_range']['velocity_error']:8.1f} "
+                  f"{m['perframe_prior']['velocity_error']:8.1f} {m['no_constraint']['velocity_error']:8.1f} "
+                  f"{m['no_constraint']['mean_correlation']:7.3f} [{v['weight_min']:5.2f},{v['weight_max']:5.2f}] "
+                  f"{m['seconds_with_baselines']:5.1f}")
 
 
 if __name__ == "__main__":

@@ -20,7 +20,12 @@ from rigbuild.io.metrics import merge_metrics
 from rigbuild.io.rigs import read_rig_npz
 from rigbuild.logs import run_logged
 from rigbuild.retarget.common import reorder_markers, write_weight_curves_csv, write_weight_curves_json
-from rigbuild.retarget.seol import retarget_seol, sobolev_beta, sparse_combination_weights
+from rigbuild.retarget.seol import (
+    retarget_seol,
+    sobolev_beta,
+    sobolev_beta_from_corner_hz,
+    sparse_combination_weights,
+)
 from rigbuild.retarget.seol_outputs import plot_velocity_error, write_gltf_morph_animation
 
 log = logging.getLogger("rigbuild.retarget.seol")
@@ -36,10 +41,16 @@ PARAMS = {
     "rigid_weights": "rigidity",   # rigidity | uniform
     "head_refine_iterations": 3,
     "sobolev": None,               # {"regions": {regex: beta}, "frames": [..] or null}
+    "sobolev_corner_hz": None,     # uniform Sobolev term on every marker, beta = (2 pi f_c / fps)^2
     "gaps": "mask",                # mask (gaps left out of the energy) | interpolate
     "prior_corner_hz": None,       # prior strength as a corner frequency (Hz); overrides alpha
     "prior_combinations": 0,       # extra sparse-combination training frames for the PCA prior
     "prior_combination_density": 0.15,
+    # scale-proportion matching (sec. 3.2; rigbuild.retarget.proportion): rbf (the paper) |
+    # deformation (target blendshapes deformation-transferred onto the RBF-warped target mesh) |
+    # jacobian | local_affine | affine | none
+    "scale_match": "rbf",
+    "scale_match_kernel": "r",     # the RBF's phi: r (the paper) | r3 | tps
 }
 
 
@@ -66,6 +77,9 @@ def main(snakemake) -> None:
     if cfg["sobolev"]:
         sob = cfg["sobolev"]
         beta = sobolev_beta(names, sob.get("regions", {}), X.shape[0] if sob.get("frames") else None, sob.get("frames"))
+    if cfg["sobolev_corner_hz"] is not None:
+        uniform = sobolev_beta_from_corner_hz(len(names), float(cfg["sobolev_corner_hz"]), float(take.fps))
+        beta = uniform if beta is None else np.maximum(beta, uniform)
     rw = None if cfg["rigid_weights"] == "uniform" else cfg["rigid_weights"]
     pins = {int(f): v for f, v in (cfg["pins"] or {}).items()}
     n_comb = int(cfg["prior_combinations"] or 0)
@@ -77,13 +91,15 @@ def main(snakemake) -> None:
                         prior_corner_hz=None if corner is None else float(corner), fps=float(take.fps),
                         boundary_frames=cfg["boundary_frames"], pins=pins, boundary_values=cfg["boundary_values"],
                         rigid_weights=rw, head_refine_iterations=int(cfg["head_refine_iterations"]), beta=beta,
-                        alpha_perframe=float(cfg["alpha_perframe"]), weight_range=tuple(cfg["weight_range"]))
+                        alpha_perframe=float(cfg["alpha_perframe"]), weight_range=tuple(cfg["weight_range"]),
+                        scale_match=str(cfg["scale_match"]), scale_match_kernel=str(cfg["scale_match_kernel"]))
     seconds = time.perf_counter() - t0
     fps = take.fps
     out = snakemake.output
     write_weight_curves_csv(out.weights, res.weights, res.shape_names, fps)
     write_weight_curves_json(out.weights_json, res.weights, res.shape_names, fps,
-                             meta={"method": "seol2012", "alpha": cfg["alpha"], "character": rig.name})
+                             meta={"method": "seol2012", "alpha": res.alpha, "character": rig.name,
+                                   "scale_match": cfg["scale_match"]})
     write_gltf_morph_animation(out.gltf, rig, res.weights, fps, res.head_rotation, res.head_translation,
                                pivot=res.target_pivot)
     plot_velocity_error(out.plot, res.velocity_error, fps, title=f"{snakemake.params.performance} -> {rig.name}")

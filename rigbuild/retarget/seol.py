@@ -6,7 +6,10 @@ Every part of the paper, in marker space:
   :func:`remove_head_motion`, :func:`head_motion_about_pivot`, :func:`apply_head_motion`;
 - sec. 3.2 scale-proportion matching: an RBF warp ``d(x) = sum_i w_i |x - c_i| + q(x)`` (linear
   polynomial ``q``) from the target's neutral markers to the source's, applied to the marker positions
-  of every target blendshape: :func:`fit_rbf_warp`, :func:`scale_proportion_match`;
+  of every target blendshape: :func:`fit_rbf_warp`, :func:`scale_proportion_match`; options beside it
+  (``scale_match`` of :func:`retarget_seol`, :mod:`rigbuild.retarget.proportion`): deformation transfer
+  of the target's blendshapes onto the RBF-warped target mesh (``"deformation"``, the inverse of how
+  stylized rigs are built), the RBF's Jacobian, per-marker local affine maps, other kernels;
 - sec. 4 movement matching ``min_W ||D (B W)^T - D S^T||_F^2`` with boundary frames (pins);
 - sec. 5 the PCA prior of the target's blendshapes ``E_prior = v^T Lambda^-1 v``,
   ``v = E^T (B w + n_tgt - t_bar)``: :func:`build_pca_prior`; ``E = E_match + alpha E_prior`` solved as
@@ -49,6 +52,8 @@ import scipy.linalg
 from scipy.linalg import lapack
 
 from rigbuild.errors import InputError
+from rigbuild.retarget.proportion import MODES as SCALE_MATCH_MODES
+from rigbuild.retarget.proportion import ProportionMap, fit_proportion_map, proportion_match
 from rigbuild.rig import Rig
 
 #: The paper's prior weight for movement matching (sec. 5, fig. 7(f)) and for per-frame matching
@@ -191,22 +196,9 @@ def fill_marker_gaps(markers: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------- sec. 3.2 RBF warp
-@dataclass
-class RbfWarp:
-    """``d(x) = sum_i w_i |x - c_i| + a_0 + A x`` (sec. 3.2). centers (n, 3); weights (n, 3);
-    affine (4, 3) rows [1, x, y, z]."""
-
-    centers: np.ndarray
-    weights: np.ndarray
-    affine: np.ndarray
-
-    def __call__(self, x: np.ndarray) -> np.ndarray:
-        """Warp points (..., 3) mm -> (..., 3) mm."""
-        x = np.asarray(x, dtype=np.float64)
-        flat = x.reshape(-1, 3)
-        r = np.linalg.norm(flat[:, None, :] - self.centers[None], axis=2)
-        out = r @ self.weights + self.affine[0] + flat @ self.affine[1:]
-        return out.reshape(x.shape)
+#: ``d(x) = sum_i w_i |x - c_i| + a_0 + A x`` (sec. 3.2): a :class:`~rigbuild.retarget.proportion.ProportionMap`
+#: with ``phi(r) = r`` (centers (n, 3); weights (n, 3); affine (4, 3) rows [1, x, y, z]).
+RbfWarp = ProportionMap
 
 
 def fit_rbf_warp(centers: np.ndarray, targets: np.ndarray) -> RbfWarp:
@@ -215,25 +207,9 @@ def fit_rbf_warp(centers: np.ndarray, targets: np.ndarray) -> RbfWarp:
     centers : (n, 3) target-neutral marker positions; targets : (n, 3) source-neutral positions.
     Solves ``[[Phi, P], [P^T, 0]] [w; a] = [targets; 0]`` (n + 4 unknowns per coordinate); ``d``
     reproduces affine maps exactly. Needs n >= 4 non-coplanar centers.
+    (:func:`rigbuild.retarget.proportion.fit_proportion_map` with ``kernel="r"``.)
     """
-    c = np.asarray(centers, dtype=np.float64)
-    y = np.asarray(targets, dtype=np.float64)
-    n = c.shape[0]
-    if c.shape != y.shape or c.ndim != 2 or c.shape[1] != 3:
-        raise InputError(f"RBF: centers {c.shape} and targets {y.shape} must both be (n, 3)")
-    if n < 4 or np.linalg.matrix_rank(c - c.mean(0)) < 3:
-        raise InputError("RBF: need at least 4 non-coplanar corresponding markers",
-                         fix="map more markers between the source and the target")
-    Phi = np.linalg.norm(c[:, None, :] - c[None], axis=2)
-    P = np.hstack([np.ones((n, 1)), c])
-    A = np.zeros((n + 4, n + 4))
-    A[:n, :n] = Phi
-    A[:n, n:] = P
-    A[n:, :n] = P.T
-    rhs = np.zeros((n + 4, 3))
-    rhs[:n] = y
-    sol = np.linalg.solve(A, rhs)
-    return RbfWarp(centers=c, weights=sol[:n], affine=sol[n:])
+    return fit_proportion_map(centers, targets, "r")
 
 
 def scale_proportion_match(
@@ -325,6 +301,20 @@ def sobolev_beta(marker_names: Sequence[str], region_betas: Mapping[str, float],
     fr = _frame_indices(frames, n_frames, "Sobolev frames")
     out[fr] = beta
     return out
+
+
+def sobolev_beta_from_corner_hz(n_markers: int, corner_hz: float, fps: float) -> np.ndarray:
+    """(M,) uniform sec. 7.1 Sobolev weights ``beta = (2 pi corner_hz / fps)^2`` for every marker.
+
+    Per temporal frequency ``w`` (radians per frame) the velocity term weighs a residual by
+    ``2 - 2 cos w ~ w^2`` and the position term by ``beta``: with this beta, residual motion slower
+    than ``corner_hz`` is charged as position error (no drift of the weights over a long take, e.g.
+    after a gap or against the prior's pull), faster motion as velocity error (the paper's movement
+    matching). Independent of units and marker count; 1 Hz at 60 fps gives 0.011.
+    """
+    if corner_hz < 0 or fps <= 0:
+        raise InputError(f"Sobolev corner {corner_hz} Hz at {fps} fps", fix="use corner_hz >= 0 and fps > 0")
+    return np.full(int(n_markers), (2.0 * np.pi * float(corner_hz) / float(fps)) ** 2)
 
 
 # ---------------------------------------------------------------------- block tridiagonal solvers
@@ -825,18 +815,22 @@ def target_marker_blendshapes(target: Rig, marker_names: Sequence[str] | None = 
     """The target's neutral markers (M, 3) and marker deltas (K, M, 3), in ``marker_names`` order
     (default: the rig's marker order), mm."""
     rig = target if target.units == "mm" else target.to_units("mm")
+    idx = _marker_vertex_ids(rig, marker_names)
+    return rig.neutral[idx], rig.deltas[:, idx, :]
+
+
+def _marker_vertex_ids(rig: Rig, marker_names: Sequence[str] | None) -> np.ndarray:
+    """(M,) vertex ids of ``marker_names`` on ``rig`` (default: the rig's marker order)."""
     if rig.marker_vertices.size == 0:
         raise InputError(f"target rig '{rig.name}' has no marker set", fix="attach the marker set (Rig.with_markers)")
     if marker_names is None:
-        idx = rig.marker_vertices
-    else:
-        pos = {n: i for i, n in enumerate(rig.marker_names)}
-        missing = [n for n in marker_names if n not in pos]
-        if missing:
-            raise InputError(f"markers {missing} are not on target rig '{rig.name}'",
-                             fix="use a marker map whose names exist on the target rig")
-        idx = rig.marker_vertices[[pos[n] for n in marker_names]]
-    return rig.neutral[idx], rig.deltas[:, idx, :]
+        return np.asarray(rig.marker_vertices)
+    pos = {n: i for i, n in enumerate(rig.marker_names)}
+    missing = [n for n in marker_names if n not in pos]
+    if missing:
+        raise InputError(f"markers {missing} are not on target rig '{rig.name}'",
+                         fix="use a marker map whose names exist on the target rig")
+    return np.asarray(rig.marker_vertices)[[pos[n] for n in marker_names]]
 
 
 def retarget_seol(
@@ -862,6 +856,8 @@ def retarget_seol(
     prior_corner_hz: float | None = None,
     fps: float | None = None,
     scale_match: str = "rbf",
+    scale_match_kernel: str = "r",
+    scale_match_neighbors: int = 12,
 ) -> SeolResult:
     """Retarget a marker performance onto a blendshape target (Seol et al. 2012, all sections).
 
@@ -898,8 +894,15 @@ def retarget_seol(
     prior_corner_hz, fps : give the prior strength as a corner frequency in Hz instead of a raw
         ``alpha`` (:func:`alpha_from_corner_hz`; independent of units, marker count and frame rate);
         overrides ``alpha``; ``fps`` is then required.
-    scale_match : ``"rbf"`` (sec. 3.2, the paper), ``"affine"`` (only the linear part of the RBF) or
-        ``"none"`` (the target's own marker deltas), for diagnosis.
+    scale_match : how the target's marker blendshapes are carried into the source's proportions
+        (:mod:`rigbuild.retarget.proportion`): ``"rbf"`` (sec. 3.2, the paper: ``d(n + b) - d(n)``),
+        ``"deformation"`` (the target's blendshapes deformation-transferred onto the RBF-warped target
+        mesh; needs the target's mesh, which a :class:`Rig` has), ``"jacobian"`` (the RBF's Jacobian
+        at each marker applied to its displacement), ``"local_affine"`` (per-marker neighbourhood
+        affine fit), ``"affine"`` (only the linear part of the RBF) or ``"none"`` (the target's own
+        marker deltas).
+    scale_match_kernel : the RBF's ``phi``: ``"r"`` (the paper), ``"r3"`` or ``"tps"``.
+    scale_match_neighbors : neighbourhood size of ``"local_affine"``.
 
     Returns :class:`SeolResult`.
     """
@@ -922,13 +925,14 @@ def retarget_seol(
     Y = np.asarray(source_neutral, dtype=np.float64)
     if Y.shape != (M, 3) or not np.all(np.isfinite(Y)):
         raise InputError(f"source neutral must be a finite ({M}, 3) array, got {Y.shape}")
-    n_star, d_star, warp = scale_proportion_match(n_tgt, d_tgt, Y)
-    if scale_match == "affine":
-        d_star = np.asarray(d_tgt) @ warp.affine[1:]
-    elif scale_match == "none":
-        d_star = np.array(d_tgt, dtype=np.float64)
-    elif scale_match != "rbf":
-        raise InputError(f"scale_match '{scale_match}' unknown", fix="use 'rbf', 'affine' or 'none'")
+    if scale_match not in SCALE_MATCH_MODES:
+        raise InputError(f"scale_match '{scale_match}' unknown", fix=f"use one of {list(SCALE_MATCH_MODES)}")
+    mesh = mvid = None
+    if scale_match == "deformation":
+        mesh = target if target.units == "mm" else target.to_units("mm")
+        mvid = _marker_vertex_ids(mesh, marker_names)
+    _, d_star, warp = proportion_match(n_tgt, d_tgt, Y, scale_match, scale_match_kernel, scale_match_neighbors,
+                                       mesh=mesh, marker_vertices=mvid)
     if gaps not in ("mask", "interpolate"):
         raise InputError(f"gaps '{gaps}' unknown", fix="use 'mask' or 'interpolate'")
     K = d_star.shape[0]
