@@ -26,7 +26,8 @@ from rigbuild.retarget.seol import (
     sobolev_beta_from_corner_hz,
     sparse_combination_weights,
 )
-from rigbuild.retarget.seol_outputs import plot_velocity_error, write_gltf_morph_animation
+from rigbuild.io.gltf_anim import write_gltf_animation
+from rigbuild.retarget.seol_outputs import plot_velocity_error
 
 log = logging.getLogger("rigbuild.retarget.seol")
 
@@ -100,8 +101,9 @@ def main(snakemake) -> None:
     write_weight_curves_json(out.weights_json, res.weights, res.shape_names, fps,
                              meta={"method": "seol2012", "alpha": res.alpha, "character": rig.name,
                                    "scale_match": cfg["scale_match"]})
-    write_gltf_morph_animation(out.gltf, rig, res.weights, fps, res.head_rotation, res.head_translation,
-                               pivot=res.target_pivot)
+    # head motion and pivot are in mm: write the character in mm too
+    write_gltf_animation(out.gltf, rig if rig.units == "mm" else rig.to_units("mm"), res.weights, fps,
+                         res.head_rotation, res.head_translation, pivot=res.target_pivot)
     plot_velocity_error(out.plot, res.velocity_error, fps, title=f"{snakemake.params.performance} -> {rig.name}")
     res.system.save(out.system)
     char = snakemake.params.character

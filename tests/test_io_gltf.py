@@ -99,7 +99,7 @@ def test_gltf_uv_split_duplicates_the_shared_vertex(tmp_path):
 
 
 # ------------------------------------------------------------------ independent reader: pygltflib only
-pygltflib = pytest.importorskip("pygltflib")  # pinned in pyproject (1.16.5); the checks below use it alone
+import pygltflib  # noqa: E402  (pinned in pyproject, 1.16.5; the checks below use it alone)
 from pygltflib.validator import validate as pygltflib_validate  # noqa: E402
 
 from rigbuild.io.gltf_anim import write_gltf_animation  # noqa: E402
@@ -252,3 +252,31 @@ def test_weight_animation_loaded_by_pygltflib(tmp_path, make):
     assert a_out.count == F * rig.n_shapes
     w = _pyg_accessor(g, blob, smp.output).reshape(F, rig.n_shapes)
     np.testing.assert_array_equal(w, W.astype(np.float32))
+
+
+def test_gltf_animation_head_motion_channels(tmp_path):
+    """Head motion about a pivot: the node's rotation/translation channels reproduce R (x - c) + c + d."""
+    from scipy.spatial.transform import Rotation
+
+    from rigbuild.io.gltf_anim import read_gltf_animation_weights
+
+    rig = random_rig(n_vertices=30, n_shapes=3)
+    F = 4
+    W = np.linspace(0, 1, F * rig.n_shapes).reshape(F, rig.n_shapes)
+    R = Rotation.from_euler("y", np.linspace(0, 20, F)[:, None], degrees=True).as_matrix()
+    d = np.stack([np.linspace(0, 5, F), np.zeros(F), np.ones(F)], 1)  # mm
+    c = np.array([1.0, 2.0, 3.0])
+    p = tmp_path / "head.gltf"
+    write_gltf_animation(p, rig, W, 30.0, head_rotation=R, head_translation=d, pivot=c)
+    g, blob = _pyg_load(p)
+    anim = g.animations[0]
+    paths = {ch.target.path: ch.sampler for ch in anim.channels}
+    assert set(paths) == {"weights", "rotation", "translation"}
+    q = _pyg_accessor(g, blob, anim.samplers[paths["rotation"]].output).astype(float)
+    t = _pyg_accessor(g, blob, anim.samplers[paths["translation"]].output).astype(float)
+    x = np.array([10.0, -4.0, 7.0])  # a point in mm
+    for f in range(F):
+        moved = Rotation.from_quat(q[f]).as_matrix() @ (x * 1e-3) + t[f]
+        np.testing.assert_allclose(moved, (R[f] @ (x - c) + c + d[f]) * 1e-3, atol=1e-6)
+    _, W_back, _ = read_gltf_animation_weights(p)
+    np.testing.assert_allclose(W_back, W, atol=1e-6)

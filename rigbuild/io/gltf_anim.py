@@ -5,7 +5,9 @@ Self-contained (one ``.gltf`` JSON with the binary buffer embedded as a base64 d
 written atomically and opened in Blender / three.js / any glTF viewer). Positions are written in metres (the
 glTF unit), converted from the rig's units; ``asset.extras`` records ``units`` ("m"), ``source_units``,
 ``scale`` (rig units -> m), ``axes``, ``fps`` and ``n_frames``. Morph targets are stored as sparse accessors
-(only the vertices a shape moves), so a 26k-vertex, 53-shape ICT rig stays small.
+(only the vertices a shape moves), so a 26k-vertex, 53-shape ICT rig stays small. Optional head motion
+(per-frame rotation and translation about a pivot) is written as the node's ``rotation`` / ``translation``
+channels of the same animation.
 """
 
 from __future__ import annotations
@@ -50,12 +52,24 @@ class _Buffer:
         return len(self.accessors) - 1
 
 
+def rotation_quaternions_xyzw(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (F, 4) in glTF order (x, y, z, w) of rotation matrices (F, 3, 3)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
+
+
 def gltf_animation_document(
-    rig: Rig, weights: np.ndarray, fps: float, threshold: float = 1e-7, name: str | None = None
+    rig: Rig, weights: np.ndarray, fps: float, threshold: float = 1e-7, name: str | None = None,
+    head_rotation: np.ndarray | None = None, head_translation: np.ndarray | None = None,
+    pivot: np.ndarray | None = None,
 ) -> dict:
     """The glTF JSON document (dict) of ``rig`` animated by ``weights`` (F, K) at ``fps``.
 
     ``threshold`` (rig units): a vertex belongs to a shape's sparse morph target if it moves more than this.
+    head_rotation (F, 3, 3), head_translation (F, 3) rig units, pivot (3,) rig units (default the origin):
+    the head motion ``x' = R (x - pivot) + pivot + translation``, written as the node's rotation and
+    translation channels (translation in metres).
     """
     w = np.asarray(weights, dtype=np.float32)
     if w.ndim != 2 or w.shape[1] != rig.n_shapes:
@@ -90,6 +104,22 @@ def gltf_animation_document(
                         "min": [float(times.min())], "max": [float(times.max())]})
     a_w = buf.accessor({"bufferView": buf.view(w.reshape(-1)), "componentType": FLOAT, "count": int(w.size),
                         "type": "SCALAR"})
+    samplers = [{"input": a_t, "output": a_w, "interpolation": "LINEAR"}]
+    channels = [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]
+    if head_rotation is not None and head_translation is not None:
+        Rh = np.asarray(head_rotation, dtype=np.float64)
+        d = np.asarray(head_translation, dtype=np.float64)
+        if Rh.shape != (F, 3, 3) or d.shape != (F, 3):
+            raise ValueError(f"head motion must be ({F}, 3, 3) and ({F}, 3), got {Rh.shape} and {d.shape}")
+        c = np.zeros(3) if pivot is None else np.asarray(pivot, dtype=np.float64)
+        trans = ((c + d - Rh @ c) * to_m).astype(np.float32)  # R (x - c) + c + d = R x + (c + d - R c)
+        a_q = buf.accessor({"bufferView": buf.view(rotation_quaternions_xyzw(Rh).astype(np.float32)),
+                            "componentType": FLOAT, "count": F, "type": "VEC4"})
+        a_tr = buf.accessor({"bufferView": buf.view(trans), "componentType": FLOAT, "count": F, "type": "VEC3"})
+        samplers += [{"input": a_t, "output": a_q, "interpolation": "LINEAR"},
+                     {"input": a_t, "output": a_tr, "interpolation": "LINEAR"}]
+        channels += [{"sampler": 1, "target": {"node": 0, "path": "rotation"}},
+                     {"sampler": 2, "target": {"node": 0, "path": "translation"}}]
     data = b"".join(buf.chunks)
     label = name or rig.name
     return {
@@ -108,8 +138,8 @@ def gltf_animation_document(
         }],
         "animations": [{
             "name": f"{label}_weights",
-            "samplers": [{"input": a_t, "output": a_w, "interpolation": "LINEAR"}],
-            "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}],
+            "samplers": samplers,
+            "channels": channels,
         }],
         "buffers": [{"byteLength": len(data),
                      "uri": "data:application/octet-stream;base64," + base64.b64encode(data).decode("ascii")}],
@@ -118,9 +148,14 @@ def gltf_animation_document(
     }
 
 
-def write_gltf_animation(path: str | os.PathLike, rig: Rig, weights: np.ndarray, fps: float) -> None:
-    """Write ``rig`` with its morph-target ``weights`` (F, K) animation at ``fps`` as a ``.gltf`` (atomic)."""
-    write_text(path, json.dumps(gltf_animation_document(rig, weights, fps), separators=(",", ":")))
+def write_gltf_animation(path: str | os.PathLike, rig: Rig, weights: np.ndarray, fps: float,
+                         head_rotation: np.ndarray | None = None, head_translation: np.ndarray | None = None,
+                         pivot: np.ndarray | None = None) -> None:
+    """Write ``rig`` with its morph-target ``weights`` (F, K) animation at ``fps`` as a ``.gltf`` (atomic);
+    optional head motion as in :func:`gltf_animation_document`."""
+    doc = gltf_animation_document(rig, weights, fps, head_rotation=head_rotation,
+                                  head_translation=head_translation, pivot=pivot)
+    write_text(path, json.dumps(doc, separators=(",", ":")))
 
 
 def read_gltf_animation_weights(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, list[str]]:
