@@ -4,14 +4,19 @@ Speed (issue 7): blendshape transfer for M = 99 markers, K = 54 shapes, about 80
 Table 1: 5-23 s in Python/SciPy; goal < 1 s); retargeting >= 2,000 frames/s over a whole sequence and
 >= 300 frames/s one frame at a time (paper: 105 fps in C++).
 Accuracy: weight MAE on the actor's own rig and mean per-shape correlation on the ICT template and two
-stylized variants, for the faithful transfer, the activation-aware E_Match option, the RBF-transfer
-baseline and the parallel parametrization (the actor's ground-truth sparse shapes: an upper bound).
+stylized variants, for the faithful transfer, the activation-aware E_Match option, the ROM-fit E_Match option
+(with RBF and with deformation-transfer guesses g_k), the RBF-transfer baseline, the deformation-transfer
+guesses used directly and the parallel parametrization (the actor's ground-truth sparse shapes: the ceiling
+of the retargeting step). The actor's neutral is the mean of the ROM sequences' neutral frames (one per
+sequence, as the pipeline does). ``retarget_step`` rows: the parallel ceiling with the old settings (a
+one-frame neutral, rigid head motion removed before the fit) and with each fix alone.
 
     .venv/bin/python benchmarks/bench_retarget_ribera.py [--quick]
 """
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from dataclasses import replace
@@ -26,7 +31,7 @@ from rigbuild.eval.retarget import retarget_metrics, synthetic_retarget_scene  #
 from rigbuild.io.rigs import read_ict_rig  # noqa: E402
 from rigbuild.paths import ict_dir  # noqa: E402
 from rigbuild.retarget import ribera as rb  # noqa: E402
-from rigbuild.retarget.common import character_sparse_blendshapes, rigidity_weights, stabilize  # noqa: E402
+from rigbuild.retarget.common import average_neutral, character_sparse_blendshapes, rigidity_weights, stabilize  # noqa: E402
 from rigbuild.synth.characters import make_character  # noqa: E402
 from rigbuild.synth.markers import load_marker_set  # noqa: E402
 
@@ -65,6 +70,13 @@ def speed(template, scene) -> dict:
     t0 = time.perf_counter()
     rb.transfer_blendshapes(s0, ds, a0, da, rb.TransferParams(match="activation"), segment_starts=starts)
     t_act = time.perf_counter() - t0
+    Q54 = rb.prior_matrix(char.neutral, char.deltas, char.faces, rb.head_scale(a0, s0))
+    t0, c0 = time.perf_counter(), time.process_time()
+    rb.transfer_blendshapes(s0, ds, a0, da, rb.TransferParams(match="fit"), segment_starts=starts, prior=Q54)
+    t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
+    t0, c0 = time.perf_counter(), time.process_time()
+    rb.deformation_guesses(char, vids, a0)
+    t_dt, c_dt = time.perf_counter() - t0, time.process_time() - c0
     # retargeting speed on the ICT actor performance (53 shapes, its marker set)
     model = rb.build_model(template, template.marker_vertices, scene["neutral"], None, "rbf",
                            retarget_params=rb.RetargetParams(bounds=(0, 1), lambda_cm=0.006))
@@ -97,7 +109,19 @@ def speed(template, scene) -> dict:
     out["pipeline_one_at_a_time_cpu_fps"] = n1 / (time.process_time() - c0)
     return {"M": 99, "K": 54, "training_frames": int(len(W)), "n_keys": int(res.keys.size),
             "transfer_s_median": float(np.median(times)), "transfer_cpu_s_median": float(np.median(cpu)), "transfer_activation_s": t_act,
+            "transfer_fit_s": t_fit, "transfer_fit_cpu_s": c_fit, "deformation_guess_s": t_dt,
+            "deformation_guess_cpu_s": c_dt, "load_average_1min": os.getloadavg()[0],
             "paper_transfer_s": [5.37, 23.25], "paper_retarget_fps": 105, **out}
+
+
+METHODS = (("ribera", "ribera", None), ("ribera_activation", "ribera_activation", None),
+           ("ribera_fit", "ribera_fit", None), ("ribera_fit_deformation", "ribera_fit", "deformation"),
+           ("rbf", "rbf", None), ("deformation", "deformation", None), ("parallel", "parallel", None))
+
+
+def scene_neutral(scene) -> np.ndarray:
+    """The actor's neutral as the pipeline builds it: the mean of one neutral frame per ROM sequence."""
+    return average_neutral(scene["training"][scene["segment_starts"]])
 
 
 def accuracy(template, scene, identity_folder, lambdas=LAMBDAS_CM) -> list[dict]:
@@ -106,23 +130,48 @@ def accuracy(template, scene, identity_folder, lambdas=LAMBDAS_CM) -> list[dict]
     for kind in ("template", "exaggerated", "stylized"):
         chars[kind] = make_character(template, kind, seed=3, identity_folder=identity_folder)
     actor_sparse = actor.deltas[:, actor.marker_vertices]
+    a0 = scene_neutral(scene)
     rows = []
     for lam in lambdas:
         rp = rb.RetargetParams(bounds=(0.0, 1.0), lambda_cm=lam)
         for cname, ch in chars.items():
-            for method in ("ribera", "ribera_activation", "rbf", "parallel"):
+            for label, method, guess in METHODS:
+                if lam != lambdas[-1] and method not in ("ribera", "rbf", "parallel"):
+                    continue
                 t0 = time.perf_counter()
-                m = rb.build_model(ch, actor.marker_vertices, scene["neutral"], scene["training"], method,
-                                   retarget_params=rp, segment_starts=scene["segment_starts"],
+                tp = rb.TransferParams(guess=guess) if guess else None
+                m = rb.build_model(ch, actor.marker_vertices, a0, scene["training"], method,
+                                   transfer_params=tp, retarget_params=rp, segment_starts=scene["segment_starts"],
                                    actor_blendshapes=actor_sparse)
                 w = m.retarget(scene["performance"])
                 met = retarget_metrics(w, m.shape_names, scene["weights"], actor.shape_names, actor_sparse)
                 scale = float(np.median((m.dp * actor_sparse).sum((1, 2)) / (actor_sparse**2).sum((1, 2))))
-                rows.append({"lambda_cm": lam, "character": cname, "method": method,
+                cos = float(np.median((m.dp * actor_sparse).sum((1, 2)) / np.maximum(
+                    np.linalg.norm(m.dp.reshape(len(m.dp), -1), axis=1) * np.linalg.norm(actor_sparse.reshape(len(m.dp), -1), axis=1), 1e-12)))
+                rows.append({"lambda_cm": lam, "character": cname, "method": label,
                              "weight_mae": met["weight_mae"], "mean_correlation": met["mean_correlation"],
                              "unobservable_mae": met["unobservable_mae"], "median_shape_scale": scale,
-                             "seconds": time.perf_counter() - t0})
+                             "median_shape_cosine": cos, "seconds": time.perf_counter() - t0})
                 print(rows[-1], flush=True)
+    return rows
+
+
+def retarget_step(template, scene) -> list[dict]:
+    """The parallel-parametrization ceiling (true actor marker blendshapes) under the retargeting-step
+    settings: one-frame vs averaged neutral, rigid head motion removed before the fit vs fitted jointly."""
+    actor = scene["actor"]
+    sparse = actor.deltas[:, actor.marker_vertices]
+    rows = []
+    for neutral_label, a0 in (("frame0", scene["neutral"]), ("averaged", scene_neutral(scene))):
+        for rigid in ("fixed", "joint"):
+            rp = rb.RetargetParams(bounds=(0.0, 1.0), lambda_cm=0.006, rigid=rigid)
+            m = rb.build_model(actor, actor.marker_vertices, a0, None, "parallel", retarget_params=rp,
+                               actor_blendshapes=sparse)
+            met = retarget_metrics(m.retarget(scene["performance"]), m.shape_names, scene["weights"],
+                                   actor.shape_names, sparse)
+            rows.append({"neutral": neutral_label, "rigid": rigid, "weight_mae": met["weight_mae"],
+                         "mean_correlation": met["mean_correlation"]})
+            print(rows[-1], flush=True)
     return rows
 
 
@@ -134,11 +183,13 @@ def main() -> None:
     scene = synthetic_retarget_scene(template, seed=1, identity_folder=ict_dir())
     sp = speed(template, scene)
     print_table([{k: v for k, v in sp.items() if not isinstance(v, list)}], [k for k in sp if not isinstance(sp[k], list)])
+    step = retarget_step(template, scene)
+    print_table(step, ["neutral", "rigid", "weight_mae", "mean_correlation"])
     rows = accuracy(template, scene, ict_dir(), LAMBDAS_CM[-1:] if quick else LAMBDAS_CM)
     print_table(rows, ["lambda_cm", "character", "method", "weight_mae", "mean_correlation", "unobservable_mae",
-                       "median_shape_scale", "seconds"])
+                       "median_shape_scale", "median_shape_cosine", "seconds"])
     write_result("retarget_ribera", {
-        "speed": sp, "accuracy": rows,
+        "speed": sp, "retarget_step": step, "accuracy": rows,
         "scene": {"markers": len(names), "shapes": template.n_shapes, "training_frames": int(len(scene["training"])),
                   "performance_frames": int(len(scene["performance"])), "noise_mm": 0.2, "gap_fraction": 0.01},
         "goals": {"transfer_s": 1.0, "batch_fps": 2000, "one_at_a_time_fps": 300, "own_rig_mae": 0.05,

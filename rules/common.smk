@@ -135,9 +135,9 @@ def performances(session):
     return [p.name for p in session_spec(session).performances]
 
 
-#: retargeting methods run per (performance, character): Ribera 2017 as written, its activation-aware
-#: E_Match option, the RBF-transfer baseline, and Seol 2012 spacetime cloning
-RETARGET_METHODS = ["ribera", "ribera_activation", "rbf", "seol"]
+#: retargeting methods run per (performance, character): Ribera 2017 as written, its activation-aware and
+#: fitted E_Match options, the RBF-transfer and deformation-transfer baselines, and Seol 2012 spacetime cloning
+RETARGET_METHODS = ["ribera", "ribera_activation", "ribera_fit", "rbf", "deformation", "seol"]
 
 
 def stage_targets(session):
@@ -199,7 +199,7 @@ def _personalize_template(wc):
 
 # ---- used by rules/retarget.smk
 
-RIBERA_METHODS = ["ribera", "ribera_activation", "rbf"]
+RIBERA_METHODS = ["ribera", "ribera_activation", "ribera_fit", "rbf", "deformation"]
 
 
 def _ribera_training(wc):

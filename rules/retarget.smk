@@ -1,7 +1,8 @@
 # Marker-space retargeting with range-of-motion alignment and a geometric prior (Ribera et al. 2017):
 # one job per (session, performance, character, method); method in RIBERA_METHODS
-# (ribera = the paper as written, ribera_activation = the activation-aware E_Match option, rbf = the
-# RBF-transfer baseline). Needs from common.smk: session_spec, session_dir, CHARACTERS, results(), is_synthetic;
+# (ribera = the paper as written, ribera_activation = the activation-aware E_Match option, ribera_fit = the
+# ROM-fit E_Match option (recommended with guess: deformation), rbf = the RBF-transfer baseline,
+# deformation = the deformation-transfer guesses used directly). Needs from common.smk: session_spec, session_dir, CHARACTERS, results(), is_synthetic;
 # characters.smk builds results/{session}/characters/{character}.npz; tracking writes
 # results/{session}/track/{sequence}/markers.npz. Params: config["params"]["retarget"]["ribera"]
 # (keys: scripts/retarget.py PARAMS).
@@ -56,6 +57,7 @@ rule retarget_eval:
         method=lambda wc: wc.method,
         character=lambda wc: wc.character,
         metrics_path=lambda wc: results(wc.session, "metrics.json"),
+        ribera=lambda wc: config["params"]["retarget"].get("ribera", {}),
     log:
         "logs/{session}/retarget/{method}_eval.{performance}.{character}.log",
     threads: 1

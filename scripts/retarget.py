@@ -1,5 +1,5 @@
 """Snakemake entry point: marker-space retargeting after Ribera et al. 2017 of one performance onto one
-character with one method (ribera | ribera_activation | rbf | parallel).
+character with one method (ribera | ribera_activation | ribera_fit | rbf | deformation | parallel).
 
 input: performance (.c3d/.npz markers), training (list of tracked ROM marker .npz: ``markers`` F x M x 3 mm,
 ``marker_names``), rig (character .npz with its marker map), optional parallel_rig (the actor's personalized
@@ -15,6 +15,7 @@ import logging
 import numpy as np
 
 from rigbuild.errors import InputError
+from rigbuild.eval.retarget import PRIMARY_RIBERA_METHOD, metric_prefixes
 from rigbuild.io.atomic import write_json
 from rigbuild.io.gltf_anim import write_gltf_animation
 from rigbuild.io.markers import read_markers
@@ -34,15 +35,18 @@ PARAMS = {
     "beta": 0.1,              # E_CEG weight (eq. 4)
     "r": 15.0,                # contrast steepness (eq. 7)
     "ceg_reference": "character",
+    "guess": "rbf",           # g_k of E_Mesh for ribera / ribera_activation: rbf (sec. 4.4) | deformation
+    "fit_guess": "deformation",  # g_k of E_Mesh for ribera_fit
+    "fit_alpha": 0.3,         # E_Mesh weight of the ribera_fit match
+    "fit_lambda_cm": 0.2,     # E_Sparse weight of the training-frame activations in ribera_fit (cm)
+    "rigid": "joint",         # residual head motion fitted jointly with the weights | fixed
     "mu": 0.3,                # E_Prior weight (eq. 16)
     "lambda_cm": 0.6,         # E_Sparse weight for markers in cm (x100 internally for mm)
     "bounds": [0.0, 1.0],     # weight bounds, or null
     "allow_empty_frames": True,
     "preview_frames": 4,
+    "primary": PRIMARY_RIBERA_METHOD,  # the variant also reported as retarget.ribera.* (issue 7's keys)
 }
-#: metric prefix per method
-METHOD_KEYS = {"ribera": "ribera", "ribera_activation": "ribera_activation", "rbf": "rbf_baseline",
-               "parallel": "parallel"}
 
 
 def main(snakemake) -> None:
@@ -78,8 +82,10 @@ def main(snakemake) -> None:
         actor_dp = prig.deltas[:, vids]
     bounds = None if cfg["bounds"] is None else tuple(cfg["bounds"])
     tp = TransferParams(alpha=float(cfg["alpha"]), beta=float(cfg["beta"]), r=float(cfg["r"]),
-                        ceg_reference=str(cfg["ceg_reference"]))
-    rp = RetargetParams(mu=float(cfg["mu"]), lambda_cm=float(cfg["lambda_cm"]), bounds=bounds)
+                        ceg_reference=str(cfg["ceg_reference"]),
+                        guess=str(cfg["fit_guess"] if method == "ribera_fit" else cfg["guess"]),
+                        fit_alpha=float(cfg["fit_alpha"]), fit_lambda_cm=float(cfg["fit_lambda_cm"]))
+    rp = RetargetParams(mu=float(cfg["mu"]), lambda_cm=float(cfg["lambda_cm"]), bounds=bounds, rigid=str(cfg["rigid"]))
     res = retarget_performance(training, take.markers, take.names, rig, rig.marker_names, rig.marker_vertices,
                                method, tp, rp, actor_blendshapes=actor_dp,
                                allow_empty_frames=bool(cfg["allow_empty_frames"]),
@@ -107,8 +113,9 @@ def main(snakemake) -> None:
         values["n_keys"] = int(res.model.transfer.keys.size)
     write_json(out.metrics, {"character": char, "performance": snakemake.params.performance, "method": method,
                              **values})
-    prefix = METHOD_KEYS[method]
-    merge_metrics(snakemake.params.metrics_path, "retarget", {f"{prefix}.{char}.{k}": v for k, v in values.items()})
+    merge_metrics(snakemake.params.metrics_path, "retarget",
+                  {f"{prefix}.{char}.{k}": v for prefix in metric_prefixes(method, str(cfg["primary"]))
+                   for k, v in values.items()})
     log.info("%s %s -> %s: %d frames, build %.2f s, %.0f frames/s", method, snakemake.params.performance, char, F,
              values["build_s"], values["frames_per_s"])
 

@@ -33,7 +33,7 @@ def test_reader_on_real_takes(animface):
     assert 100.0 < width < 200.0
 
 
-@pytest.mark.parametrize("method", ["ribera", "rbf"])
+@pytest.mark.parametrize("method", ["ribera", "ribera_fit", "rbf", "deformation"])
 def test_retarget_animface_onto_ict(animface, ict_rig, method):
     names, ids, pairs = read_marker_map(MARKER_DATA_DIR / "animface_ict.json")
     jaw, brows = animface["Jaw"], animface["Eyebrows"]

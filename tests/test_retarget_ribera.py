@@ -291,6 +291,135 @@ def test_build_model_parallel_and_rbf_on_own_rig():
         np.testing.assert_allclose(m.retarget(X), W, atol=2e-3)
 
 
+# ------------------------------------------------------------------ retargeting-step fixes (issue 7, round 3)
+def test_rigid_jacobian_is_the_cross_product():
+    rng = np.random.default_rng(7)
+    ref = rng.normal(size=(9, 3)) * 40
+    J = rb.rigid_jacobian(ref)
+    omega, t = np.array([0.01, -0.02, 0.005]), np.array([1.0, -2.0, 0.5])
+    np.testing.assert_allclose(J @ np.r_[omega, t], np.cross(omega, ref - ref.mean(0)) + t, atol=1e-12)
+
+
+def test_joint_rigid_fit_is_exact_where_a_neutral_fit_absorbs_expression():
+    """da = P w + J xi (an expression seen with a small residual head motion): the joint fit returns w and
+    J xi exactly, with and without gaps; the fixed fit (rigid motion taken as expression) does not."""
+    P, W, da = _random_problem(3, F=12)
+    rng = np.random.default_rng(8)
+    ref = rng.normal(size=(P.shape[1], 3)) * 40
+    J = rb.rigid_jacobian(ref)
+    xi = rng.normal(size=(12, 6)) * np.r_[0.01, 0.01, 0.01, 1.0, 1.0, 1.0]
+    rigid = np.einsum("mcj,fj->fmc", J, xi)
+    obs = da + rigid
+    obs[2, 4] = np.nan
+    obs[5, :3] = np.nan
+    prm = rb.RetargetParams(mu=0.0, lambda_cm=0.0, bounds=None)
+    rt = rb.RiberaRetargeter(P, np.zeros((6, 6)), prm, reference=ref)
+    w = rt.solve(obs)
+    np.testing.assert_allclose(w, W, atol=1e-7)
+    np.testing.assert_allclose(rt.rigid_motion(obs, w), rigid, atol=1e-6)
+    np.testing.assert_allclose(rt.solve_frame(obs[5]), W[5], atol=1e-7)
+    fixed = rb.RiberaRetargeter(P, np.zeros((6, 6)), rb.RetargetParams(mu=0.0, lambda_cm=0.0, bounds=None,
+                                                                         rigid="fixed"), reference=ref)
+    assert np.abs(fixed.solve(obs) - W).max() > 0.01
+    # bounded: the joint fit is still exact when the truth lies inside the bounds
+    rtb = rb.RiberaRetargeter(P, np.zeros((6, 6)), rb.RetargetParams(mu=0.0, lambda_cm=0.0, bounds=(0, 1)), reference=ref)
+    np.testing.assert_allclose(rtb.solve(obs), W, atol=1e-7)
+
+
+def test_average_neutral_aligns_and_averages():
+    from scipy.spatial.transform import Rotation
+
+    from rigbuild.retarget.common import average_neutral
+
+    rng = np.random.default_rng(9)
+    ref = rng.normal(size=(15, 3)) * 40
+    R = Rotation.from_rotvec(rng.normal(size=(40, 3)) * 0.05).as_matrix()
+    t = rng.normal(size=(40, 3)) * 4
+    noise = rng.normal(scale=0.2, size=(40, 15, 3))
+    frames = np.einsum("fij,mj->fmi", R, ref) + t[:, None] + noise
+    frames[3, 2] = np.nan
+    a0 = average_neutral(frames)
+    aligned, _, _ = stabilize(a0[None], ref)
+    err_mean = np.sqrt(((aligned[0] - ref) ** 2).mean())
+    err_one = np.sqrt(((stabilize(frames[:1], ref)[0][0] - ref) ** 2).mean())
+    assert err_mean < 0.35 * err_one  # ~ 1/sqrt(40) of a single frame's noise
+    # noise-free frames: exactly the shape (all pairwise distances)
+    exact = average_neutral(np.einsum("fij,mj->fmi", R[:5], ref) + t[:5, None])
+    d = lambda x: np.linalg.norm(x[:, None] - x[None], axis=2)  # noqa: E731
+    np.testing.assert_allclose(d(exact), d(ref), atol=1e-9)
+    frames[:, 4] = np.nan
+    with pytest.raises(InputError, match="missing in every neutral frame"):
+        average_neutral(frames)
+
+
+def test_training_set_neutral_is_the_mean_of_the_neutral_frames():
+    from rigbuild.retarget.run import make_training_set
+
+    rig = grid_rig()
+    names = rig.marker_names
+    rng = np.random.default_rng(10)
+    s1 = rig.markers()[None] + rng.normal(scale=0.3, size=(4, rig.marker_vertices.size, 3))
+    s2 = rig.markers()[None] + rng.normal(scale=0.3, size=(3, rig.marker_vertices.size, 3))
+    one = make_training_set([s1, s2], [names, names], [1])
+    both = make_training_set([s1, s2], [names, names], [1, 2])
+    np.testing.assert_allclose(one.neutral, s1[1])
+    from rigbuild.retarget.common import average_neutral
+
+    np.testing.assert_allclose(both.neutral, average_neutral(np.stack([s1[1], s2[2]])), atol=1e-12)
+    assert np.abs(both.neutral - rig.markers()).mean() < np.abs(one.neutral - rig.markers()).mean()
+    with pytest.raises(InputError, match="outside training sequence 1"):
+        make_training_set([s1, s2], [names, names], [0, 9])
+
+
+def _grid_rom(rig, scale, n_frames=40, seed=11):
+    """Training frames of an actor whose shapes are ``scale`` x the rig's: every frame activates 1-2 shapes,
+    one at full strength (a range of motion)."""
+    rng = np.random.default_rng(seed)
+    K = rig.n_shapes
+    W = np.zeros((n_frames, K))
+    for f in range(n_frames):
+        W[f, f % K] = 1.0
+        W[f, rng.integers(K)] = max(W[f, rng.integers(K)], rng.uniform(0, 0.5))
+    ds = rig.deltas[:, rig.marker_vertices]
+    return W, np.einsum("fk,kmc->fmc", W, scale * ds)
+
+
+def test_fit_match_is_a_fixed_point_at_exact_guesses_and_aligns_scale():
+    rig = grid_rig()
+    s0 = rig.markers()
+    ds = rig.deltas[:, rig.marker_vertices]
+    tp0 = rb.TransferParams(match="fit", fit_lambda_cm=0.0, fit_mu=0.0, epsilon=0.0)
+    W, da = _grid_rom(rig, 1.0)
+    res = rb.transfer_blendshapes(s0, ds, s0, da, tp0)
+    np.testing.assert_allclose(res.dp, ds, atol=1e-8)  # the guesses explain the ROM exactly: nothing moves
+    np.testing.assert_allclose(res.info["activations"], W, atol=1e-8)
+    # the actor moves 1.5x: the activations are capped at 1, so the fitted shapes grow toward 1.5x (no L1 here:
+    # the paper's lambda is tuned for a face, not for this 4-shape grid); E_Mesh holds them back by alpha
+    W, da = _grid_rom(rig, 1.5)
+    scales = []
+    for alpha in (0.3, 0.01):
+        res = rb.transfer_blendshapes(s0, ds, s0, da, rb.TransferParams(match="fit", fit_alpha=alpha,
+                                                                         fit_lambda_cm=0.0, fit_mu=0.0))
+        scales.append((res.dp * ds).sum((1, 2)) / (ds * ds).sum((1, 2)))
+    assert np.all(scales[0] > 1.2) and np.all(scales[1] > 1.44) and np.all(scales[1] < 1.5 + 1e-6)
+    assert np.all(scales[1] > scales[0])
+
+
+def test_deformation_guesses_reproduce_own_rig():
+    """On the character's own neutral (a0 = its markers) the RBF is the identity and deformation transfer
+    returns the character's own marker displacements."""
+    rig = grid_rig()
+    V = rig.neutral.copy()
+    V[:, 2] = 0.01 * (V[:, 0] - 40.0) ** 2 + 0.005 * (V[:, 1] - 40.0) ** 2  # a curved cap (markers not coplanar)
+    bent = Rig(V, rig.deltas, rig.shape_names, rig.faces, name="cap", marker_names=rig.marker_names,
+               marker_vertices=rig.marker_vertices)
+    dg = rb.deformation_guesses(bent, bent.marker_vertices, bent.markers())
+    np.testing.assert_allclose(dg, bent.deltas[:, bent.marker_vertices], atol=1e-6)
+    with pytest.raises(InputError, match="unknown initial guess"):
+        rb.build_model(bent, bent.marker_vertices, bent.markers(), None, "ribera",
+                       transfer_params=rb.TransferParams(guess="magic"))
+
+
 # ---------------------------------------------------------------------------------- common
 def test_metrics_and_observable_shapes():
     t = np.linspace(0, 1, 50)
@@ -402,9 +531,14 @@ def test_maya_ascii_locator_reader(tmp_path):
 
 # ---------------------------------------------------------------------------- synthetic stage test
 @pytest.mark.slow
-def test_stage_ict_actor_own_rig_and_template(ict_rig, ict_folder):
-    """Realistic tier: synthetic ICT actor, ICT marker set; own-rig MAE and template correlation bounds."""
+def test_stage_ict_actor_own_rig_template_and_stylized(ict_rig, ict_folder):
+    """Realistic tier (the benchmark scene): synthetic ICT actor, ICT marker set, neutral averaged over the ROM
+    sequences' neutral frames. Own-rig MAE, correlation >= 0.9 on the template and a stylized character for
+    the ROM-fit transfer with deformation-transfer guesses, better than the RBF baseline; the faithful
+    transfer's shrinkage is measured, not assumed away."""
     from rigbuild.eval.retarget import retarget_metrics, synthetic_retarget_scene
+    from rigbuild.retarget.common import average_neutral
+    from rigbuild.synth.characters import make_character
     from rigbuild.synth.markers import load_marker_set
 
     names, vids = load_marker_set("ict")
@@ -412,18 +546,33 @@ def test_stage_ict_actor_own_rig_and_template(ict_rig, ict_folder):
     sc = synthetic_retarget_scene(template, seed=1, identity_folder=ict_folder)  # the benchmark scene
     actor = sc["actor"]
     sparse = actor.deltas[:, actor.marker_vertices]
+    a0 = average_neutral(sc["training"][sc["segment_starts"]])
     prm = rb.RetargetParams(bounds=(0, 1), lambda_cm=0.006)
-    out = {}
-    for cname, ch in (("actor", actor), ("template", template)):
-        for method in ("rbf", "ribera"):
-            m = rb.build_model(ch, actor.marker_vertices, sc["neutral"], sc["training"], method,
-                               retarget_params=prm, segment_starts=sc["segment_starts"])
+    chars = {"actor": actor, "template": template,
+             "stylized": make_character(template, "stylized", seed=3, identity_folder=ict_folder)}
+    runs = {"actor": ("rbf", "ribera", "ribera_fit"), "template": ("rbf", "ribera_fit_dt"),
+            "stylized": ("rbf", "ribera_fit_dt")}
+    out, dps = {}, {}
+    for cname, methods in runs.items():
+        for method in methods:
+            tp = rb.TransferParams(guess="deformation") if method.endswith("_dt") else None
+            m = rb.build_model(chars[cname], actor.marker_vertices, a0, sc["training"], method.removesuffix("_dt"),
+                               transfer_params=tp, retarget_params=prm, segment_starts=sc["segment_starts"])
             out[cname, method] = retarget_metrics(m.retarget(sc["performance"]), m.shape_names, sc["weights"],
                                                   actor.shape_names, sparse)
-    assert out["actor", "rbf"]["weight_mae"] <= 0.05
-    assert out["template", "rbf"]["mean_correlation"] >= 0.8
-    # the faithful transfer is measured, not assumed good: its shrinkage shows as larger weights
-    assert out["actor", "ribera"]["weight_mae"] > out["actor", "rbf"]["weight_mae"]
+            dps[cname, method] = m.dp
+    # benchmark (2026-11 round 3): actor rbf 0.016 / 0.979; ribera_fit 0.024 / 0.969; template ribera_fit_dt
+    # 0.932 vs rbf 0.918; stylized 0.931 vs 0.865
+    assert out["actor", "rbf"]["weight_mae"] <= 0.025 and out["actor", "rbf"]["mean_correlation"] >= 0.97
+    assert out["actor", "ribera_fit"]["weight_mae"] <= 0.035
+    for cname in ("template", "stylized"):
+        assert out[cname, "ribera_fit_dt"]["mean_correlation"] >= 0.92
+        assert out[cname, "ribera_fit_dt"]["mean_correlation"] > out[cname, "rbf"]["mean_correlation"] + 0.005
+        assert out[cname, "ribera_fit_dt"]["weight_mae"] < out[cname, "rbf"]["weight_mae"]
+    # the faithful transfer shrinks the shapes (median scale ~0.4) and its weights err more
+    scale = np.median((dps["actor", "ribera"] * sparse).sum((1, 2)) / (sparse**2).sum((1, 2)))
+    assert scale < 0.6
+    assert out["actor", "ribera"]["weight_mae"] > 3 * out["actor", "rbf"]["weight_mae"]
 
 
 class _Named(list):
@@ -483,3 +632,14 @@ def test_entry_points_write_outputs_and_metrics(tmp_path):
     assert metrics["rbf_baseline.grid.mean_correlation"] > 0.999
     assert metrics["rbf_baseline.grid.n_frames"] == 12
     assert (tmp_path / "out" / "preview.png").stat().st_size > 1000
+
+
+def test_metric_prefixes_primary_variant():
+    from rigbuild.eval.retarget import metric_prefixes
+
+    assert metric_prefixes("ribera_fit") == ["ribera_fit", "ribera"]
+    assert metric_prefixes("ribera") == ["ribera_faithful"]
+    assert metric_prefixes("ribera", primary="ribera") == ["ribera_faithful", "ribera"]
+    assert metric_prefixes("rbf") == ["rbf_baseline"]
+    with pytest.raises(InputError, match="primary 'rbf'"):
+        metric_prefixes("rbf", primary="rbf")

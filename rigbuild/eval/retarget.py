@@ -22,8 +22,22 @@ from rigbuild.retarget.common import (
 )
 
 #: method name -> metric prefix in metrics.json (``retarget.<prefix>.<character>.*``)
-METHOD_KEYS = {"ribera": "ribera", "ribera_activation": "ribera_activation", "rbf": "rbf_baseline",
-               "parallel": "parallel", "seol": "seol"}
+#: metrics.json prefix (``retarget.<prefix>.<character>.*``) of each method's own numbers
+METHOD_KEYS = {"ribera": "ribera_faithful", "ribera_activation": "ribera_activation", "ribera_fit": "ribera_fit",
+               "rbf": "rbf_baseline", "deformation": "deformation_baseline", "parallel": "parallel", "seol": "seol"}
+#: the Ribera 2017 variant whose numbers are also reported as ``retarget.ribera.*`` (the issue's keys);
+#: config ``params.retarget.ribera.primary`` chooses another (``ribera`` = the paper as written)
+PRIMARY_RIBERA_METHOD = "ribera_fit"
+RIBERA_VARIANTS = ("ribera", "ribera_activation", "ribera_fit")
+
+
+def metric_prefixes(method: str, primary: str = PRIMARY_RIBERA_METHOD) -> list[str]:
+    """metrics.json prefixes under which ``method``'s numbers are merged: its own key, plus ``ribera``
+    when it is the primary Ribera variant."""
+    if primary not in RIBERA_VARIANTS:
+        raise InputError(f"params.retarget.ribera.primary '{primary}' is not a Ribera variant", path="config",
+                         fix=f"use one of {list(RIBERA_VARIANTS)}")
+    return [METHOD_KEYS[method]] + (["ribera"] if method == primary else [])
 
 
 def align_to_truth(weights: np.ndarray, names: Sequence[str], true_weights: np.ndarray,

@@ -204,6 +204,33 @@ def stabilize(
     return stable, R, t
 
 
+def average_neutral(frames: np.ndarray, rounds: int = 2) -> np.ndarray:
+    """The actor's neutral (M, 3) mm as the mean of several neutral frames (N, M, 3) (NaN gaps).
+
+    Each frame is rigidly aligned (uniform weights: all frames show the same expression) onto the current
+    mean, starting from the frame with the most visible markers, and the aligned frames are averaged per
+    marker over the frames where it is visible. With N frames the marker noise of the neutral drops by
+    sqrt(N); every displacement ``a_f - a0`` carries that noise as a constant offset otherwise (measured on
+    the synthetic ICT actor: 0.2 mm noise in a one-frame neutral costs 0.01-0.05 of mean correlation).
+    Raises :class:`InputError` if a marker is visible in no frame.
+    """
+    X = np.asarray(frames, dtype=np.float64)
+    if X.ndim == 2:
+        X = X[None]
+    vis = visible_mask(X)
+    never = ~vis.any(0)
+    if never.any():
+        raise InputError(f"markers {np.flatnonzero(never).tolist()} are missing in every neutral frame",
+                         fix="choose neutral frames where every marker is visible at least once")
+    ref = X[int(np.argmax(vis.sum(1)))]
+    for _ in range(max(rounds, 1)):
+        ok = np.isfinite(ref).all(1)
+        stable, _, _ = stabilize(X, np.where(ok[:, None], ref, 0.0), np.broadcast_to(ok, vis.shape))
+        n = vis.sum(0)
+        ref = np.where(vis[..., None], stable, 0.0).sum(0) / np.maximum(n, 1)[:, None]
+    return ref
+
+
 def rigidity_weights(sparse_deltas: np.ndarray, floor: float = 0.05) -> np.ndarray:
     """(M,) weights for stabilization: high for markers the expressions move little.
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from rigbuild.errors import InputError
 from rigbuild.retarget.common import (
+    average_neutral,
     check_frames,
     interpolate_missing_rows,
     map_markers_to_vertices,
@@ -44,8 +45,11 @@ def make_training_set(
 ) -> TrainingSet:
     """Concatenate training sequences (each (F_i, M_i, 3) with its marker names) in the first one's order.
 
-    The actor's neutral ``a0`` is frame ``neutral_frames[0]`` (default 0) of the first sequence; it must have
-    every marker visible.
+    ``neutral_frames`` gives one neutral frame per sequence (default: frame 0 of the first sequence only; a
+    shorter list covers the first sequences). The actor's neutral ``a0`` is the rigidly aligned mean of these
+    frames (:func:`~rigbuild.retarget.common.average_neutral`): each neutral frame's marker noise would
+    otherwise become a constant offset of every displacement. Every marker must be visible in at least one
+    of them.
     """
     if not sequences:
         raise InputError("no training sequence given", fix="list the actor's ROM marker files")
@@ -54,18 +58,23 @@ def make_training_set(
     for i, (m, n) in enumerate(zip(sequences, names)):
         src = None if sources is None else sources[i]
         mats.append(reorder_markers(m, n, order, what="training sequence", path=src))
-    nf = 0 if neutral_frames is None else int(neutral_frames[0])
-    if not 0 <= nf < mats[0].shape[0]:
-        raise InputError(f"neutral frame {nf} outside the first training sequence ({mats[0].shape[0]} frames)",
-                         path=None if sources is None else sources[0])
-    a0 = mats[0][nf]
-    if not np.all(np.isfinite(a0)):
-        missing = [order[j] for j in np.flatnonzero(~np.all(np.isfinite(a0), axis=1))]
-        raise InputError(f"the neutral frame {nf} has gaps in markers {missing}",
+    nfs = [0] if neutral_frames is None else [int(v) for v in neutral_frames][: len(mats)]
+    picked = []
+    for i, nf in enumerate(nfs):
+        if not 0 <= nf < mats[i].shape[0]:
+            raise InputError(f"neutral frame {nf} outside training sequence {i} ({mats[i].shape[0]} frames)",
+                             path=None if sources is None else sources[i])
+        picked.append(mats[i][nf])
+    picked = np.stack(picked)
+    never = ~np.all(np.isfinite(picked), axis=2).any(0)
+    if never.any():
+        missing = [order[j] for j in np.flatnonzero(never)]
+        raise InputError(f"the neutral frame(s) {nfs} have gaps in markers {missing}",
                          path=None if sources is None else sources[0],
-                         fix="choose a neutral frame where every marker is visible")
+                         fix="choose neutral frames where every marker is visible (in at least one of them)")
+    a0 = average_neutral(picked)
     starts = np.cumsum([0] + [m.shape[0] for m in mats[:-1]]).astype(np.int64)
-    return TrainingSet(np.concatenate(mats), order, starts, a0.copy())
+    return TrainingSet(np.concatenate(mats), order, starts, a0)
 
 
 @dataclass
