@@ -28,12 +28,12 @@ class RomScene:
 
 def make_rom_scene(template: Rig, n_sequences: int = 8, frames_per_sequence: int = 10, seed: int = 0,
                    identity_folder=None, max_rotation_deg: float = 2.0, max_translation_mm: float = 3.0,
-                   actor_kwargs: dict | None = None) -> RomScene:
+                   actor_kwargs: dict | None = None, peak_range: tuple[float, float] = (1.0, 1.0)) -> RomScene:
     from rigbuild.synth.actor import make_actor_rig
     from rigbuild.synth.motion import make_head_motion, make_rom_weights
 
     actor, info = make_actor_rig(template, seed=seed, identity_folder=identity_folder, **(actor_kwargs or {}))
-    seqs = make_rom_weights(actor.shape_names, n_sequences, frames_per_sequence, seed=seed + 2)
+    seqs = make_rom_weights(actor.shape_names, n_sequences, frames_per_sequence, seed=seed + 2, peak_range=peak_range)
     centre = actor.neutral[actor.face_vertices].mean(0)
     verts, Ws, Rs, ts, ids = [], [], [], [], []
     for s, W in enumerate(seqs):

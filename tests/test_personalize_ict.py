@@ -58,10 +58,16 @@ def test_ict_subset_personalization(ict_rig, ict_folder):
 
 @pytest.mark.slow
 def test_ict_realistic_acceptance(ict_rig, ict_folder):
-    """config/ict.yaml's actor and ROM: 12 sequences x 15 frames, the last held out."""
-    res, m, _, _ = run(ict_rig, 12, 15, 1, ict_folder, 11, PersonalizeParams())
+    """config/ict.yaml's actor and ROM: 12 sequences x 15 frames, the last held out, rom_peak gauge.
+
+    The ROM is performed at full intensity (make_rom_weights' default: every shape peaks at weight 1), so the
+    ROM-peak gauge fixes each shape's amplitude (measured 0.53 shape-error reduction, benchmarks/out/
+    personalize.json). With peaks drawn from 0.6-1.0 no ROM-peak gauge can pass 0.34 (the actor's exact
+    shapes, scaled so, score 0.344)."""
+    res, m, _, _ = run(ict_rig, 12, 15, 1, ict_folder, 11, PersonalizeParams(gauge="rom_peak"))
     print(m)
     assert m["residual_reduction"] >= 0.5
     assert m["min_shape_cosine"] >= 0.9
     assert m["weight_mae"] <= 0.05
-    assert m["heldout_residual_reduction"] >= 0.2
+    assert m["heldout_residual_reduction"] >= 0.4
+    assert m["shape_error_reduction"] >= 0.4

@@ -96,3 +96,7 @@ def test_bad_inputs_name_the_problem(session, tmp_path):
         split_params({"lambda_x": 1})
     with pytest.raises(InputError, match="held-out sequence"):
         run_personalization(session["tracks"], t, tmp_path / "out", {"held_out_sequences": ["nope"]})
+    params, _ = split_params({"gauge": "rom_peak", "gauge_max_weight": 2.5})
+    assert params.gauge == "rom_peak" and params.gauge_max_weight == 2.5
+    with pytest.raises(InputError, match="unknown gauge 'peak'"):
+        run_personalization(session["tracks"], t, tmp_path / "out", {"gauge": "peak", "min_confident_vertices": 10})

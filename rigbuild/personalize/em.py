@@ -56,6 +56,15 @@ class PersonalizeParams:
         elsewhere it keeps ``D*`` exactly (exact zeros stay zero: the paper's local support).
     ring : rings of unconfident vertices around the confident ones that are also solved for.
     qp_method : ``"active_set"`` or ``"cvxopt"``.
+    gauge : ``"none"`` (the paper: each shape keeps the amplitude the regularizers pull it to, i.e.
+        D*'s) or ``"rom_peak"``: the ROM is performed at full intensity, so each shape's largest
+        weight over the fitting frames is 1. Shape amplitude and weight share a scale no frame
+        determines (``(a D_k, w_k / a)`` fit identically); with ``"rom_peak"`` the weights are first fitted
+        to the D* rig with the box relaxed to ``[0, gauge_max_weight]``, each ``D*_k`` (the prior of
+        E_r and E_d) is scaled by its peak weight, the paper's EM runs on that rig, and at the end each
+        shape is scaled by its peak weight once more (weights divided by it: the fit is unchanged).
+    gauge_max_weight : the relaxed upper bound of the gauge fit (largest amplitude ratio actor / D*
+        that can be measured).
     """
 
     lambda_s: float = 0.1
@@ -72,6 +81,11 @@ class PersonalizeParams:
     support_tol_mm: float = 1.0
     ring: int = 2
     qp_method: str = "active_set"
+    gauge: str = "none"
+    gauge_max_weight: float = 3.0
+
+
+GAUGES = ("none", "rom_peak")
 
 
 @dataclass
@@ -80,7 +94,8 @@ class PersonalizationResult:
     (F, K), rotations (F, 3, 3), translations (F, 3) (NaN for skipped frames), kept (F,) bool;
     objective: one dict per step (``iteration``, ``step``, ``total`` and each term);
     residual_initial_mm / residual_final_mm: RMS fit residual over confident vertices of the kept
-    frames with the D*-initialized rig and with the personalized rig."""
+    frames with the D*-initialized rig and with the personalized rig; shape_scales (K,): the amplitude
+    factor the ``rom_peak`` gauge applied to each shape (ones for ``gauge="none"``)."""
 
     neutral: np.ndarray
     deltas: np.ndarray
@@ -95,6 +110,7 @@ class PersonalizationResult:
     active_vertices: np.ndarray | None = None
     timings: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    shape_scales: np.ndarray | None = None
 
 
 # ---------------------------------------------------------------------------- checks
@@ -169,6 +185,7 @@ class FrameFitter:
         self.uniform_conf = bool(np.all(conf2[kept] == conf2[kept][:1]))
         self.conf = np.sqrt(conf2)
         self.qp_times: list[float] = []
+        self.hi = 1.0  # upper bound of the weights (relaxed only to measure the ROM gauge)
 
     def set_rig(self, neutral_a: np.ndarray, deltas_a: np.ndarray) -> None:
         self.n0 = neutral_a
@@ -226,7 +243,7 @@ class FrameFitter:
         H, f = weight_qp(gram - Hwz @ Hzz_inv @ Hwz.T, -(gw - Hwz @ Hzz_inv @ gz), self.p.lambda_s,
                          self.p.lambda_t, nbrs_obs)
         tq = time.perf_counter()
-        wo = solve_box_qp(H, f, x0=w0[obs], method=self.p.qp_method)
+        wo = solve_box_qp(H, f, x0=np.minimum(w0[obs], self.hi), method=self.p.qp_method, hi=self.hi)
         self.qp_times.append(time.perf_counter() - tq)
         z = -Hzz_inv @ (Hwz.T @ wo + gz)
         w = np.zeros_like(w0)
@@ -272,7 +289,7 @@ class FrameFitter:
         H, f = weight_qp(gram, (self.D @ (m3 * r.ravel()))[obs], p.lambda_s, p.lambda_t, nbrs_obs)
         w_start = W[i][obs].copy()
         tq = time.perf_counter()
-        w_fin = solve_box_qp(H, f, x0=w_start, method=p.qp_method)
+        w_fin = solve_box_qp(H, f, x0=np.minimum(w_start, self.hi), method=p.qp_method, hi=self.hi)
         self.qp_times.append(time.perf_counter() - tq)
         W[i] = 0.0
         W[i, obs] = w_fin
@@ -339,6 +356,17 @@ def fit_weights_and_rigid(neutral: np.ndarray, deltas: np.ndarray, frames: np.nd
 
 
 # ---------------------------------------------------------------------------- EM
+def rom_peak_scales(weights: np.ndarray, observable: np.ndarray | None = None) -> np.ndarray:
+    """(K,) the peak weight of each shape over ROM frames ``weights`` (F, K): the amplitude factor that
+    makes the shape reach weight 1 at its peak (``rom_peak`` gauge). Shapes never used (peak 0) or
+    not ``observable`` keep 1."""
+    peak = np.nanmax(np.asarray(weights, dtype=np.float64), axis=0)
+    ok = np.isfinite(peak) & (peak > 1e-6)
+    if observable is not None:
+        ok &= np.asarray(observable, bool)
+    return np.where(ok, peak, 1.0)
+
+
 def personalize(
     neutral: np.ndarray,
     initial_deltas: np.ndarray,
@@ -378,6 +406,11 @@ def personalize(
     frames with fewer than ``min_confident_vertices`` confident vertices are skipped with a warning.
     """
     p = params or PersonalizeParams()
+    if p.gauge not in GAUGES:
+        raise InputError(f"unknown gauge '{p.gauge}' in params.personalize", path="config",
+                         fix=f"use one of: {', '.join(GAUGES)}")
+    if not p.gauge_max_weight >= 1.0:
+        raise InputError(f"gauge_max_weight must be >= 1, got {p.gauge_max_weight}", path="config")
     t_start = time.perf_counter()
     neutral = np.asarray(neutral, dtype=np.float64)
     Dstar = np.asarray(initial_deltas, dtype=np.float64)
@@ -430,10 +463,6 @@ def personalize(
     b0_a = neutral[active]
     Ds_a = Dstar[:, active]
 
-    t0 = time.perf_counter()
-    shapes = ShapeUpdate(neutral, Dstar, faces, active, p.lambda_r, p.lambda_d, p.update_neutral, support)
-    t_setup = time.perf_counter() - t0
-
     fit = FrameFitter(p, frames_a, conf2, contiguity(sequence_ids, kept), kept)
     unobs = None
     Nf = frames.shape[0]
@@ -442,10 +471,11 @@ def personalize(
     t = np.zeros((Nf, 3)) if initial_rigid is None else np.array(initial_rigid[1], float)
     X = np.zeros((K + 1, active.size, 3))
     objective: list[dict] = []
+    shapes = None
 
     def record(it: int, step: str) -> float:
         e = fit.terms(W, R, t)
-        Er, Ed = shapes.regularizers(X)
+        Er, Ed = shapes.regularizers(X) if shapes is not None else (0.0, 0.0)
         J = e["E_g"] + p.lambda_s * e["E_s"] + p.lambda_t * e["E_t"] + p.lambda_r * Er + p.lambda_d * Ed
         row = {"iteration": it, "step": step, "total": J, **e, "E_r": Er, "E_d": Ed, "lambda_s": p.lambda_s,
                "lambda_t": p.lambda_t, "lambda_r": p.lambda_r, "lambda_d": p.lambda_d}
@@ -471,6 +501,25 @@ def personalize(
     J = record(0, "weights")
     residual_initial = objective[-1]["rms_mm"]
     kept_idx = np.flatnonzero(kept)
+    scales = np.ones(K)
+    if p.gauge == "rom_peak":
+        # the ROM reaches every shape at full intensity: measure each shape's peak weight with the box
+        # relaxed, scale D* (the prior of E_r / E_d) by it; the weights scale inversely (same fit)
+        t0 = time.perf_counter()
+        fit.hi = p.gauge_max_weight
+        fit.sweep(W, R, t)
+        fit.hi = 1.0
+        t_w += time.perf_counter() - t0
+        scales = rom_peak_scales(W[kept_idx], fit.observable)
+        Dstar = Dstar * scales[:, None, None]
+        Ds_a = Dstar[:, active]
+        W = np.minimum(W / scales[None, :], 1.0)
+        set_rig()
+        objective.clear()  # the objective is re-based: its E_r / E_d refer to the scaled D*
+        J = record(0, "gauge")
+    t0 = time.perf_counter()
+    shapes = ShapeUpdate(neutral, Dstar, faces, active, p.lambda_r, p.lambda_d, p.update_neutral, support)
+    t_setup = time.perf_counter() - t0
     for it in progress(range(1, p.max_iterations + 1), "EM iterations", unit="iteration"):
         J_prev = J
         t0 = time.perf_counter()
@@ -496,6 +545,11 @@ def personalize(
     neutral_out[active] += X[0]
     deltas_out = Dstar.copy()
     deltas_out[:, active] += X[1:]
+    if p.gauge == "rom_peak":  # the personalized shapes, too, reach full intensity at their ROM peak
+        final = rom_peak_scales(W[kept_idx], fit.observable)
+        deltas_out *= final[:, None, None]
+        W = W / final[None, :]
+        scales = scales * final
     W_out = W.copy()
     W_out[~kept] = np.nan
     R_out = R.copy()
@@ -519,4 +573,5 @@ def personalize(
                  "qp_median_ms": float(np.median(qp) * 1e3) if qp.size else float("nan"),
                  "system_nnz": shapes.nnz},
         warnings=msgs,
+        shape_scales=scales,
     )

@@ -161,12 +161,13 @@ def solve_box_qp_cvxopt(H: np.ndarray, f: np.ndarray, lo: float = 0.0, hi: float
     return np.clip(np.array(sol["x"]).reshape(-1), lo, hi)
 
 
-def solve_box_qp(H: np.ndarray, f: np.ndarray, x0: np.ndarray | None = None, method: str = "active_set") -> np.ndarray:
-    """Dispatch: ``method`` ``"active_set"`` (default, exact, warm-started) or ``"cvxopt"``."""
+def solve_box_qp(H: np.ndarray, f: np.ndarray, x0: np.ndarray | None = None, method: str = "active_set",
+                 hi: float = 1.0) -> np.ndarray:
+    """Dispatch: ``method`` ``"active_set"`` (default, exact, warm-started) or ``"cvxopt"``; box ``[0, hi]``."""
     if method == "active_set":
-        return solve_box_qp_active_set(H, f, x0=x0)
+        return solve_box_qp_active_set(H, f, hi=hi, x0=x0)
     if method == "cvxopt":
-        return solve_box_qp_cvxopt(H, f)
+        return solve_box_qp_cvxopt(H, f, hi=hi)
     raise ValueError(f"unknown QP method '{method}' (use active_set or cvxopt)")
 
 

@@ -28,11 +28,13 @@ def make_rom_weights(
     frames_per_sequence: int,
     seed: int = 0,
     coverage: int = 2,
-    peak_range: tuple[float, float] = (0.6, 1.0),
+    peak_range: tuple[float, float] = (1.0, 1.0),
 ) -> list[np.ndarray]:
     """Range-of-motion weight sequences.
 
-    Every sequence starts and ends at neutral (all weights 0). Shapes are dealt to sequences so that
+    Every sequence starts and ends at neutral (all weights 0). A ROM is performed at full intensity: by
+    default every shape's bump peaks at weight 1 (the actor's extreme of that expression); ``peak_range``
+    draws the peaks uniformly from a range instead. Shapes are dealt to sequences so that
     each shape peaks in ``coverage`` different sequences with different partners; inside a sequence
     each of its shapes follows its own eased bump (own onset, peak frame and release), so the poses
     are sparse, varying combinations rather than one shape scaled (which would make shapes that
@@ -61,7 +63,8 @@ def make_rom_weights(
         for k in g:
             start = rng.uniform(0.0, 0.25) * last
             end = last - rng.uniform(0.0, 0.25) * last
-            peak = rng.uniform(start + 0.25 * (end - start), end - 0.25 * (end - start))
+            # the extreme is held at a captured frame (an integer frame: sampled bumps reach their peak)
+            peak = float(np.round(rng.uniform(start + 0.25 * (end - start), end - 0.25 * (end - start))))
             W[:, k] = np.maximum(W[:, k], rng.uniform(*peak_range) * _bump(t, start, peak, end))
         W[0] = 0.0
         W[-1] = 0.0

@@ -38,7 +38,7 @@ SYNTH_DEFAULTS: dict[str, Any] = {
     "calib_poses": 20,
     "board": {"type": "charuco", "squares_x": 7, "squares_y": 5, "square_size_mm": 24.0,
               "marker_size_mm": 18.0, "dictionary": "DICT_5X5_100"},
-    "rom": {"n_sequences": 4, "frames_per_sequence": 9, "coverage": 2,
+    "rom": {"n_sequences": 4, "frames_per_sequence": 9, "coverage": 2, "peak_range": [1.0, 1.0],
             "max_rotation_deg": 2.0, "max_translation_mm": 3.0},
     "performance": {"n": 1, "duration_s": 10.0, "fps": 30.0, "noise_mm": 0.2, "gap_fraction": 0.01},
     "actor": {"intensity_range": [0.6, 1.5], "asymmetry": 0.25, "crosstalk": 0.08, "warp": 0.15},
@@ -192,7 +192,8 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
     texture = speckle_texture(2048 if W >= 1000 else 1024, seed=seed)
     rom_cfg = p["rom"]
     seqs = make_rom_weights(actor.shape_names, len(spec.rom), int(rom_cfg["frames_per_sequence"]),
-                            seed=seed + 2, coverage=int(rom_cfg["coverage"]))
+                            seed=seed + 2, coverage=int(rom_cfg["coverage"]),
+                            peak_range=tuple(float(x) for x in rom_cfg["peak_range"]))
     n_images = 0
     for s, (seq, Wseq) in enumerate(progress_bar(list(zip(spec.rom, seqs)), "ROM images", unit="sequence")):
         R, t = make_head_motion(Wseq.shape[0], seed=seed + 100 + s,
