@@ -193,3 +193,13 @@ def test_bad_input_messages(head):
         fit_proportion_map(n * [1, 1, 0], n)
     with pytest.raises(InputError, match="marker vertices"):
         transfer_displacements_mesh(pmap, head.neutral, head.deltas, head.faces, head.marker_vertices[:5])
+
+
+def test_coplanar_markers_allowed_on_request():
+    """Markers on a plane: the affine part's out-of-plane column is undetermined; allow_coplanar takes the
+    minimum-norm solution, which still interpolates the markers exactly."""
+    rng = np.random.default_rng(4)
+    c = np.c_[rng.normal(size=(10, 2)) * 20, np.zeros(10)]
+    y = c + rng.normal(size=(10, 3))
+    f = fit_proportion_map(c, y, "r", allow_coplanar=True)
+    np.testing.assert_allclose(f(c), y, atol=1e-8)

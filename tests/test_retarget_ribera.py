@@ -116,11 +116,11 @@ def test_thin_plate_rbf_reproduces_affine_and_interpolates():
     c = rng.normal(size=(12, 3)) * 30
     A = np.array([[1.1, 0.1, 0.0], [0.0, 0.9, 0.2], [0.05, 0.0, 1.3]])
     b = np.array([5.0, -3.0, 2.0])
-    f = rb.ThinPlateRBF(c, c @ A.T + b)
+    f = rb.fit_thin_plate_rbf(c, c @ A.T + b)
     q = rng.normal(size=(20, 3)) * 30
     np.testing.assert_allclose(f(q), q @ A.T + b, atol=1e-8)
     y = rng.normal(size=(12, 3))
-    np.testing.assert_allclose(rb.ThinPlateRBF(c, y)(c), y, atol=1e-8)
+    np.testing.assert_allclose(rb.fit_thin_plate_rbf(c, y)(c), y, atol=1e-8)
     # RBF transfer of deltas through an affine map = the linear part applied to the deltas
     ds = rng.normal(size=(2, 12, 3))
     np.testing.assert_allclose(rb.rbf_transfer(c, ds, c @ A.T + b), ds @ A.T, atol=1e-8)

@@ -72,7 +72,7 @@ def build_landmark_marker_map(
     """
     import igl
 
-    from rigbuild.retarget.ribera import ThinPlateRBF
+    from rigbuild.retarget.ribera import fit_thin_plate_rbf
 
     if rig.landmarks is None:
         raise InputError(f"rig '{rig.name}' has no landmarks")
@@ -84,7 +84,7 @@ def build_landmark_marker_map(
     src = np.asarray(neutral, float)
     s, R, t = fit_similarity(src[src_idx], dst)
     moved = s * src @ R.T + t
-    rbf = ThinPlateRBF(moved[src_idx], dst)
+    rbf = fit_thin_plate_rbf(moved[src_idx], dst)
     target = rbf(moved)
     fv = rig.face_vertices
     normals = igl.per_vertex_normals(rig.neutral, rig.faces)

@@ -102,12 +102,15 @@ class ProportionMap:
         return np.einsum("nj,njk,jo->nok", g, diff, self.weights) + self.affine[1:].T[None]
 
 
-def fit_proportion_map(target_neutral: np.ndarray, source_neutral: np.ndarray, kernel: str = "r") -> ProportionMap:
+def fit_proportion_map(target_neutral: np.ndarray, source_neutral: np.ndarray, kernel: str = "r",
+                       allow_coplanar: bool = False) -> ProportionMap:
     """Fit the interpolating RBF + linear polynomial with ``f(target_i) = source_i``.
 
     target_neutral, source_neutral : (M, 3) corresponding neutral markers (mm), M >= 4 non-coplanar.
     Solves ``[[Phi, P], [P^T, 0]] [w; a] = [source; 0]``; the side conditions make ``f`` reproduce
-    affine maps exactly (then ``w = 0``). Returns a :class:`ProportionMap`.
+    affine maps exactly (then ``w = 0``). Returns a :class:`ProportionMap`. ``allow_coplanar``: coplanar
+    markers leave the affine part's out-of-plane column undetermined; take the minimum-norm least-squares
+    solution instead of raising.
     """
     c = np.asarray(target_neutral, dtype=np.float64)
     y = np.asarray(source_neutral, dtype=np.float64)
@@ -116,7 +119,8 @@ def fit_proportion_map(target_neutral: np.ndarray, source_neutral: np.ndarray, k
     if kernel not in KERNELS:
         raise InputError(f"RBF kernel '{kernel}' unknown", fix=f"use one of {KERNELS}")
     n = c.shape[0]
-    if n < 4 or np.linalg.matrix_rank(c - c.mean(0)) < 3:
+    coplanar = n >= 4 and np.linalg.matrix_rank(c - c.mean(0)) < 3
+    if n < 4 or (coplanar and not allow_coplanar):
         raise InputError("RBF: need at least 4 non-coplanar corresponding markers",
                          fix="map more markers between the source and the target")
     Phi = rbf_kernel(np.linalg.norm(c[:, None, :] - c[None], axis=2), kernel)
@@ -127,7 +131,7 @@ def fit_proportion_map(target_neutral: np.ndarray, source_neutral: np.ndarray, k
     A[n:, :n] = P.T
     rhs = np.zeros((n + 4, 3))
     rhs[:n] = y
-    sol = np.linalg.solve(A, rhs)
+    sol = np.linalg.lstsq(A, rhs, rcond=None)[0] if coplanar else np.linalg.solve(A, rhs)
     return ProportionMap(centers=c, weights=sol[:n], affine=sol[n:], kernel=kernel)
 
 

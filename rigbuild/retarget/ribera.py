@@ -13,7 +13,7 @@ Section 4 terms, all implemented here:
   contrast enhancement (eq. 7-8, r = 15) :func:`enhance_similarity`;
 - key expression extraction (3-frame Gaussian low-pass, summed rows, local peaks) :func:`key_expressions`;
 - soft masks ``u_k`` (eq. 10) :func:`soft_masks`; E_Match (eq. 10);
-- E_Mesh (eq. 11): thin-plate RBF initial guesses ``g_k`` (:class:`ThinPlateRBF`, :func:`rbf_transfer`),
+- E_Mesh (eq. 11): thin-plate RBF initial guesses ``g_k`` (:func:`fit_thin_plate_rbf`, :func:`rbf_transfer`),
   cotangent Laplacian of a triangulation of the markers in a 2D parameterization with extra eyelid / lip
   contact edges (:func:`marker_triangulation`, :func:`marker_laplacian`);
 - E_CEG (eq. 12-13): signed graph Laplacian of the between-blendshape correlations
@@ -59,6 +59,7 @@ from rigbuild.errors import InputError
 from rigbuild.rig import Rig
 from rigbuild.geometry.rigid import fit_similarity
 from rigbuild.retarget.common import stabilize, visible_mask
+from rigbuild.retarget.proportion import ProportionMap, fit_proportion_map, transfer_displacements_mesh
 
 PAPER_ALPHA = 0.01
 PAPER_BETA = 0.1
@@ -70,37 +71,12 @@ CM2_TO_MM2 = 100.0
 
 
 # ======================================================================== RBF initial guess (sec. 4.4)
-class ThinPlateRBF:
-    """3D thin-plate (biharmonic, ``phi(r) = r``) RBF interpolant with an affine part.
-
-    ``f(x) = sum_i lambda_i |x - c_i| + A x + b`` with ``f(c_i) = y_i``. centres, values : (M, 3).
-    """
-
-    def __init__(self, centres: np.ndarray, values: np.ndarray):
-        c = np.asarray(centres, dtype=np.float64)
-        y = np.asarray(values, dtype=np.float64)
-        M = c.shape[0]
-        if M < 4:
-            raise InputError(f"thin-plate RBF needs at least 4 markers, got {M}")
-        Phi = np.linalg.norm(c[:, None] - c[None], axis=2)
-        P = np.hstack([c, np.ones((M, 1))])
-        A = np.zeros((M + 4, M + 4))
-        A[:M, :M] = Phi
-        A[:M, M:] = P
-        A[M:, :M] = P.T
-        rhs = np.zeros((M + 4, 3))
-        rhs[:M] = y
-        sol = np.linalg.lstsq(A, rhs, rcond=None)[0]
-        self.centres = c
-        self.lam = sol[:M]
-        self.affine = sol[M:]  # (4, 3): rows x, y, z, 1
-
-    def __call__(self, x: np.ndarray) -> np.ndarray:
-        x = np.asarray(x, dtype=np.float64)
-        flat = x.reshape(-1, 3)
-        phi = np.linalg.norm(flat[:, None] - self.centres[None], axis=2)
-        out = phi @ self.lam + flat @ self.affine[:3] + self.affine[3]
-        return out.reshape(x.shape)
+def fit_thin_plate_rbf(centres: np.ndarray, values: np.ndarray) -> ProportionMap:
+    """3D thin-plate (biharmonic, ``phi(r) = r``) RBF interpolant with an affine part,
+    ``f(x) = sum_i lambda_i |x - c_i| + A x + b`` with ``f(c_i) = y_i``; centres, values : (M, 3) mm.
+    (:func:`rigbuild.retarget.proportion.fit_proportion_map` with kernel ``r``; M >= 4, coplanar markers
+    get the minimum-norm affine part.)"""
+    return fit_proportion_map(centres, values, kernel="r", allow_coplanar=True)
 
 
 def rbf_transfer(s0: np.ndarray, ds: np.ndarray, a0: np.ndarray) -> np.ndarray:
@@ -109,7 +85,7 @@ def rbf_transfer(s0: np.ndarray, ds: np.ndarray, a0: np.ndarray) -> np.ndarray:
     ``dg_k = f(s0 + ds_k) - f(s0)`` (= ``f(s0 + ds_k) - a0``), the RBF proportion matching of Seol 2012 /
     Orvalho 2008 used as the initial guess in E_Mesh and as the RBF-transfer baseline.
     """
-    f = ThinPlateRBF(s0, a0)
+    f = fit_thin_plate_rbf(s0, a0)
     base = f(s0)
     return f(s0[None] + ds) - base[None]
 
@@ -1069,8 +1045,6 @@ def deformation_guesses(character: Rig, vertex_ids: np.ndarray, a0: np.ndarray) 
     Unlike the pointwise RBF guess, this carries a shape's spatial gradients (a jaw hinge that moved, a lip
     roll on a wider mouth) into the new proportions. Uses ``rigbuild.retarget.proportion``.
     """
-    from rigbuild.retarget.proportion import fit_proportion_map, transfer_displacements_mesh
-
     vid = np.asarray(vertex_ids, dtype=np.int64)
     pmap = fit_proportion_map(character.neutral[vid], np.asarray(a0, float), "r")
     return transfer_displacements_mesh(pmap, character.neutral, character.deltas, character.faces, vid)
