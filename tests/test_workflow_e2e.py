@@ -62,13 +62,24 @@ def e2e_run(tmp_path_factory):
     results = tmp / "results" / "e2e"
     # 1. start, and interrupt while the reconstruction runs
     log1 = open(tmp / "run1.log", "w")
-    proc = subprocess.Popen(_cmd(tmp), stdout=log1, stderr=subprocess.STDOUT, env=_env(), start_new_session=True)
+    # a shell starting pytest in the background makes it ignore SIGINT, and children inherit that:
+    # give snakemake the default disposition back so Ctrl-C reaches it however the suite was started
+    proc = subprocess.Popen(_cmd(tmp), stdout=log1, stderr=subprocess.STDOUT, env=_env(), start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 900
     interrupted = False
     while time.time() < deadline and proc.poll() is None:
         if (results / "calib" / "cameras.json").exists() and any((tmp / "logs" / "e2e").glob("reconstruct*/**/*.log")):
-            os.killpg(proc.pid, signal.SIGINT)
-            interrupted = True
+            # Ctrl-C; snakemake swallows a SIGINT that lands while it writes a log line, so press again
+            # (as a user would) until it stops
+            for _ in range(10):
+                os.killpg(proc.pid, signal.SIGINT)
+                interrupted = True
+                try:
+                    proc.wait(timeout=10)
+                    break
+                except subprocess.TimeoutExpired:
+                    continue
             break
         time.sleep(1)
     proc.wait(timeout=300)
