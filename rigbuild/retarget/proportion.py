@@ -38,6 +38,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.distance import cdist
 
 from rigbuild.errors import InputError
 
@@ -89,7 +90,7 @@ class ProportionMap:
         step = max(1, 2_000_000 // max(len(self.centers), 1))
         for s in range(0, len(flat), step):
             p = flat[s:s + step]
-            r = np.linalg.norm(p[:, None, :] - self.centers[None], axis=2)
+            r = cdist(p, self.centers)  # exact differences (no |x|^2 - 2 x.c + |c|^2 cancellation)
             out[s:s + step] = rbf_kernel(r, self.kernel) @ self.weights + self.affine[0] + p @ self.affine[1:]
         return out.reshape(x.shape)
 
@@ -224,8 +225,9 @@ def transfer_displacements_mesh(pmap: ProportionMap, target_mesh_neutral: np.nda
     proxy = pmap(nv)
     R = polar_rotation(pmap.affine[1:].T)
     proxy_aligned = proxy @ R  # R^T x: source proportions in the target's orientation
-    moved = deformation_transfer(nv, dv, faces, proxy_aligned)
-    return moved[:, mv] @ R.T
+    # only the markers are read: solve just the pieces of each shape's support that reach them (exact)
+    moved = deformation_transfer(nv, dv, faces, proxy_aligned, sample_vertices=mv)
+    return moved @ R.T
 
 
 def proportion_match(target_neutral: np.ndarray, target_deltas: np.ndarray, source_neutral: np.ndarray,

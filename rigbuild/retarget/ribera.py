@@ -663,9 +663,9 @@ def fit_match_transfer(ds: np.ndarray, dg: np.ndarray, a0: np.ndarray, da: np.nd
     hp = RetargetParams(mu=params.fit_mu, lambda_cm=params.fit_lambda_cm, bounds=(0.0, 1.0), rigid="joint")
     dp = np.array(dg, dtype=np.float64, copy=True)
     h = np.zeros((da.shape[0], K))
-    for _ in range(params.match_iterations):
+    for it in range(params.match_iterations):
         rt = RiberaRetargeter(dp, Q, hp, reference=a0)
-        h = rt.solve(da)
+        h = rt.solve(da, start=h if it else None)  # warm start from the last activations (same minimizer)
         x = da - rt.rigid_motion(da, h)
         for _ in range(2):  # gaps: impute with the current model (EM for the least-squares match)
             x = np.where(vis[..., None], x, np.einsum("fk,kmc->fmc", h, dp))
@@ -766,6 +766,34 @@ def _masked_system(A: np.ndarray, free: np.ndarray) -> np.ndarray:
     return out
 
 
+def _solve_free(A: np.ndarray, b: np.ndarray, free: np.ndarray, fixed_values: np.ndarray) -> np.ndarray:
+    """Batched ``A_f w_f = b_f`` over the free variables with the others held at ``fixed_values``.
+
+    A (F, K, K), b (F, K), free (F, K) bool, fixed_values (F, K) (read where not free). Returns w (F, K):
+    the fixed values, and on the free set ``w_S = A_SS^-1 (b_S - A_SN w_N)``. Solved as (F, m, m) systems
+    with m the largest free count (free variables gathered first, the padding an identity block), which
+    for sparse weights is a fraction of the (K, K) cost of :func:`_masked_system`.
+    """
+    F, K = b.shape
+    wf = np.where(free, 0.0, fixed_values)
+    rhs = b - (A @ wf[..., None])[..., 0]
+    n_free = free.sum(1)
+    m = int(n_free.max()) if F else 0
+    if m == 0:
+        return wf
+    order = np.argsort(~free, axis=1, kind="stable")[:, :m]  # free variables first
+    valid = np.arange(m)[None, :] < n_free[:, None]
+    rows = np.arange(F)[:, None]
+    Ar = A[rows[:, :, None], order[:, :, None], order[:, None, :]]
+    pair = valid[:, :, None] & valid[:, None, :]
+    Ar = np.where(pair, Ar, np.eye(m)[None])
+    br = np.where(valid, np.take_along_axis(rhs, order, axis=1), 0.0)
+    x = np.linalg.solve(Ar, br[..., None])[..., 0]
+    w = wf.copy()
+    w[np.broadcast_to(rows, order.shape)[valid], order[valid]] = x[valid]
+    return w
+
+
 def rigid_jacobian(reference: np.ndarray) -> np.ndarray:
     """(M, 3, 6) derivative of the marker positions under a small rigid motion of ``reference`` (M, 3).
 
@@ -794,6 +822,11 @@ class RiberaRetargeter:
     small rigid motion of the stabilized frame. xi is unbounded and unpenalized, so it is eliminated exactly:
     the normal matrix becomes the Schur complement ``P^T P - P^T J (J^T J)^-1 J^T P`` and the right-hand
     side ``P^T da - P^T J (J^T J)^-1 J^T da`` (per visibility pattern); the K x K bounded solve is unchanged.
+
+    Speed (whole sequences and single frames give the same weights): the normal matrix of each visibility
+    pattern is built once and cached (:meth:`_pattern_systems`); all frames are solved together, each
+    active-set pass only over the free (off-bound) weights (:func:`_solve_free`); ``solve(..., start=w)``
+    seeds the active set from a nearby solution (the rigid re-fit in :meth:`RiberaModel.retarget`).
     """
 
     def __init__(self, dp: np.ndarray, Q: np.ndarray, params: RetargetParams | None = None,
@@ -815,6 +848,7 @@ class RiberaRetargeter:
             self.PtJ_m = np.einsum("mck,mcj->mkj", Pm, self.J)  # (M, K, 6)
             self.JtJ_m = np.einsum("mci,mcj->mij", self.J, self.J)  # (M, 6, 6)
         self._full, self._full_G = self._system(np.ones(M, bool))
+        self._cache: dict[bytes, tuple[np.ndarray, np.ndarray | None]] = {}
         lo, hi = (None, None) if self.params.bounds is None else self.params.bounds
         self.lo = -np.inf if lo is None else float(lo)
         self.hi = np.inf if hi is None else float(hi)
@@ -863,39 +897,45 @@ class RiberaRetargeter:
         xi = np.linalg.solve(JtJ + 1e-12 * np.eye(6), Jtr[..., None])[..., 0]
         return np.einsum("mcj,fj->fmc", self.J, xi)
 
-    def _bounded_solve(self, A: np.ndarray, b: np.ndarray, shared: bool = False) -> np.ndarray:
+    def _bounded_solve(self, A: np.ndarray, b: np.ndarray, shared: bool = False,
+                       start: np.ndarray | None = None) -> np.ndarray:
         """Batched ``min 1/2 w^T A_f w - b_f^T w`` s.t. lo <= w <= hi by a primal active-set method.
 
         A (F, K, K) SPD, b (F, K); ``shared``: every A_f is the complete-visibility system (one inverse serves
-        the unconstrained start). Exact: KKT signs are checked each pass; frames where the fast primal-dual
-        passes do not settle finish with :meth:`_primal_active_set`.
+        the unconstrained start). ``start`` (F, K): a previous solution whose active set (variables at a bound) is the first guess instead of
+        the unconstrained solution's violations (a warm start; the minimizer is unique, so only the number
+        of passes changes). Exact: KKT signs are checked each pass; frames where the fast primal-dual
+        passes do not settle finish with :meth:`_primal_active_set`. Each pass solves only the free
+        variables (:func:`_solve_free`).
         """
         F, K = b.shape
         if not (np.isfinite(self.lo) or np.isfinite(self.hi)):
             return np.linalg.solve(A, b[..., None])[..., 0]
-        # start from the unconstrained solution's violations (one shared inverse when every frame is complete)
-        if shared and A.shape[0] > 1:
-            if not hasattr(self, "_full_inv"):
-                self._full_inv = np.linalg.inv(self._full)
-            w = b @ self._full_inv.T
-        else:
-            w = np.linalg.solve(A, b[..., None])[..., 0]
-        at_lo = w < self.lo
-        at_hi = w > self.hi
-        todo = np.flatnonzero(at_lo.any(1) | at_hi.any(1))
         self.last_passes = 0
         self.unconverged = 0
+        if start is not None:
+            at_lo = start <= self.lo
+            at_hi = start >= self.hi
+            w = np.clip(start, self.lo, self.hi)
+            todo = np.arange(F)
+        else:
+            # start from the unconstrained solution's violations (one shared inverse when every frame is complete)
+            if shared and A.shape[0] > 1:
+                if not hasattr(self, "_full_inv"):
+                    self._full_inv = np.linalg.inv(self._full)
+                w = b @ self._full_inv.T
+            else:
+                w = np.linalg.solve(A, b[..., None])[..., 0]
+            at_lo = w < self.lo
+            at_hi = w > self.hi
+            todo = np.flatnonzero(at_lo.any(1) | at_hi.any(1))
         for _ in range(self.params.active_set_passes):
             if todo.size == 0:
                 break
             self.last_passes += 1
             Ab, bb, lo_b, hi_b = A[todo], b[todo], at_lo[todo], at_hi[todo]
-            fixed = lo_b | hi_b
-            wf = np.where(lo_b, self.lo, 0.0) + np.where(hi_b, self.hi, 0.0)
-            free = ~fixed
-            Af = _masked_system(Ab, free)
-            bf = np.where(free, bb - (Ab @ wf[..., None])[..., 0], wf)
-            wb = np.linalg.solve(Af, bf[..., None])[..., 0]
+            free = ~(lo_b | hi_b)
+            wb = _solve_free(Ab, bb, free, np.where(lo_b, self.lo, self.hi))
             grad = (Ab @ wb[..., None])[..., 0] - bb
             release = (lo_b & (grad < -1e-12)) | (hi_b & (grad > 1e-12))
             new_lo = free & (wb < self.lo - 1e-12)
@@ -921,12 +961,8 @@ class RiberaRetargeter:
             if todo.size == 0:
                 break
             Ab, bb, lo_b, hi_b, wt = A[todo], b[todo], at_lo[todo], at_hi[todo], w[todo]
-            fixed = lo_b | hi_b
-            wf = np.where(lo_b, lo, 0.0) + np.where(hi_b, hi, 0.0)
-            free = ~fixed
-            Af = _masked_system(Ab, free)
-            bf = np.where(free, bb - (Ab @ wf[..., None])[..., 0], wf)
-            wb = np.linalg.solve(Af, bf[..., None])[..., 0]
+            free = ~(lo_b | hi_b)
+            wb = _solve_free(Ab, bb, free, np.where(lo_b, lo, hi))
             d = wb - wt
             below = free & (wb < lo - 1e-12)
             above = free & (wb > hi + 1e-12)
@@ -957,30 +993,51 @@ class RiberaRetargeter:
         self.unconverged = int(todo.size)
         return w
 
-    def solve(self, da: np.ndarray) -> np.ndarray:
-        """Weights (F, K) for stabilized actor displacements da (F, M, 3) (NaN gaps)."""
+    def _pattern_systems(self, vis: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Normal matrices (F, K, K) and joint-rigid couplings (F, K, 6) (or None) for the visibility rows
+        vis (F, M): one :meth:`_system` per distinct pattern, kept in a cache across calls (a take's gap
+        patterns recur; one frame at a time then costs no re-assembly)."""
+        packed = np.packbits(vis, axis=1)
+        keys = [r.tobytes() for r in packed]
+        cache = self._cache
+        for key, row in zip(keys, vis):
+            if key not in cache:
+                if len(cache) >= self.CACHE_PATTERNS:
+                    cache.clear()
+                cache[key] = self._system(row)
+        A = np.stack([cache[k][0] for k in keys])
+        G = np.stack([cache[k][1] for k in keys]) if self.joint else None
+        return A, G
+
+    CACHE_PATTERNS = 1024  # (K, K) + (K, 6) floats each: about 25 MB at K = 53
+
+    def solve(self, da: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
+        """Weights (F, K) for stabilized actor displacements da (F, M, 3) (NaN gaps).
+
+        ``start`` (F, K): weights of a nearby problem (e.g. the same frames before a rigid re-fit) whose
+        active set seeds the bounded solve (with ``bounds`` and lo >= 0); the result is the same minimizer.
+        """
         da = np.asarray(da, float)
         if da.ndim == 2:
-            return self.solve(da[None])[0]
+            return self.solve(da[None], None if start is None else np.asarray(start)[None])[0]
         F = da.shape[0]
         vis = visible_mask(da)
-        A = np.broadcast_to(self._full, (F, self.K, self.K)).copy()
-        G = self._full_G
         partial = ~vis.all(1)
+        A = np.broadcast_to(self._full, (F, self.K, self.K))
+        G = self._full_G
         if partial.any():
-            pats, inv = np.unique(vis[partial], axis=0, return_inverse=True)
-            systems = [self._system(p) for p in pats]
-            inv = inv.reshape(-1)
-            A[partial] = np.stack([s[0] for s in systems])[inv]
+            A = A.copy()
+            Ap, Gp = self._pattern_systems(vis[partial])
+            A[partial] = Ap
             if self.joint:
                 G = np.broadcast_to(self._full_G, (F, self.K, 6)).copy()
-                G[partial] = np.stack([s[1] for s in systems])[inv]
+                G[partial] = Gp
         b = self._rhs(da, vis, G)
         lam = self.params.lambda_mm / self.K
         shared = not partial.any()
         if self.lo >= 0:
             # with w >= 0 the L1 term is linear, (lambda/K) sum_k w_k: exact, no reweighting needed
-            return self._bounded_solve(A, b - lam, shared)
+            return self._bounded_solve(A, b - lam, shared, start=start)
         w = self._bounded_solve(A, b, shared)
         if lam > 0:
             diag_idx = np.arange(self.K)
@@ -1029,7 +1086,7 @@ class RiberaModel:
         for _ in range(self.params.refine_rigid):
             expr = self.a0[None] + np.einsum("fk,kmc->fmc", w, self.dp)
             stable, _, _ = stabilize(markers, expr)
-            w = rt.solve(stable - self.a0[None])
+            w = rt.solve(stable - self.a0[None], start=w)  # warm start: same minimizer, fewer passes
         return w
 
 
@@ -1043,7 +1100,9 @@ def deformation_guesses(character: Rig, vertex_ids: np.ndarray, a0: np.ndarray) 
     character's whole neutral mesh into the actor's proportions; the character's blendshapes are
     deformation-transferred (Sumner and Popovic 2004) onto that proxy and sampled at ``vertex_ids`` (M,).
     Unlike the pointwise RBF guess, this carries a shape's spatial gradients (a jaw hinge that moved, a lip
-    roll on a wider mouth) into the new proportions. Uses ``rigbuild.retarget.proportion``.
+    roll on a wider mouth) into the new proportions. Uses ``rigbuild.retarget.proportion``. Only the marker
+    vertices are solved for (``deformation_transfer(..., sample_vertices=...)``: the support pieces that reach
+    a marker; exact, not a truncation).
     """
     vid = np.asarray(vertex_ids, dtype=np.int64)
     pmap = fit_proportion_map(character.neutral[vid], np.asarray(a0, float), "r")
