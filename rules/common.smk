@@ -197,7 +197,7 @@ def _personalize_template(wc):
     return str(Path(spec) if Path(spec).is_absolute() else Path(workflow.basedir) / spec)
 
 
-# ---- used by rules/retarget.smk
+# ---- used by rules/retarget.smk and rules/retarget_seol.smk (the actor's tracked ROM markers)
 
 RIBERA_METHODS = ["ribera", "ribera_activation", "ribera_fit", "rbf", "deformation"]
 

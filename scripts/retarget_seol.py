@@ -1,10 +1,11 @@
 """Snakemake entry point: spacetime expression cloning (Seol et al. 2012) of one performance onto one
 character, with the sec. 7 per-frame baselines and the fig. 11 velocity-error plot.
 
-input: performance (.c3d/.npz markers), rig (character .npz), optional neutral (tracked ROM markers
-.npz whose ``neutral_frame`` row is the actor's neutral; default: the performance's first frame).
+input: performance (.c3d/.npz markers), rig (character .npz), optional neutral (one or more tracked ROM
+marker .npz files; row ``neutral_frames[i]`` of file i is a neutral pose; the actor's neutral is their
+rigidly aligned mean, as for the Ribera method; default: the performance's first frame).
 output: weights (.csv), weights_json, gltf, plot (.png), metrics (.json), system (.npz for edits).
-params: seol (dict, see PARAMS below), character, performance, metrics_path, neutral_frame.
+params: seol (dict, see PARAMS below), character, performance, metrics_path, neutral_frames (list).
 """
 
 
@@ -19,7 +20,7 @@ from rigbuild.io.markers import read_markers
 from rigbuild.io.metrics import merge_metrics
 from rigbuild.io.rigs import read_rig_npz
 from rigbuild.logs import run_logged
-from rigbuild.retarget.common import reorder_markers, write_weight_curves_csv, write_weight_curves_json
+from rigbuild.retarget.common import average_neutral, reorder_markers, write_weight_curves_csv, write_weight_curves_json
 from rigbuild.retarget.seol import (
     retarget_seol,
     sobolev_beta,
@@ -70,10 +71,18 @@ def main(snakemake) -> None:
     X = reorder_markers(take.markers, take.names, names, path=snakemake.input.performance)
     neutral = None
     if "neutral" in snakemake.input.keys():
-        rom = read_markers(snakemake.input.neutral)
-        frame = int(snakemake.params.get("neutral_frame", 0) or 0)
-        neutral = reorder_markers(rom.markers, rom.names, names, what="neutral sequence",
-                                  path=snakemake.input.neutral)[frame]
+        files = [snakemake.input.neutral] if isinstance(snakemake.input.neutral, str) else list(snakemake.input.neutral)
+        frames = list(snakemake.params.get("neutral_frames", None) or [0] * len(files))
+        if len(frames) != len(files):
+            raise InputError(f"{len(files)} neutral marker files but {len(frames)} neutral frames", path="rules",
+                             fix="give one neutral frame per ROM marker file")
+        rows = []
+        for path, frame in zip(files, frames):
+            rom = read_markers(path)
+            if not 0 <= int(frame) < rom.markers.shape[0]:
+                raise InputError(f"neutral frame {frame} outside the {rom.markers.shape[0]} frames", path=path)
+            rows.append(reorder_markers(rom.markers, rom.names, names, what="neutral sequence", path=path)[int(frame)])
+        neutral = average_neutral(np.stack(rows))
     beta = None
     if cfg["sobolev"]:
         sob = cfg["sobolev"]
