@@ -71,7 +71,11 @@ def require_markers(template: Rig) -> None:
 
 
 def _rotation_candidates(src: np.ndarray, dst: np.ndarray) -> list[np.ndarray]:
-    """Starting rotations: identity plus the 4 proper principal-axes alignments of src onto dst."""
+    """Starting rotations: identity plus every proper rotation taking src's principal axes onto dst's
+    (all 6 axis pairings x signs: a face's width and height spread alike, and spurious dots or missing
+    markers can swap the order of its principal axes)."""
+    from itertools import permutations, product
+
     def axes(p):
         c = p - p.mean(0)
         _, _, vt = np.linalg.svd(c, full_matrices=False)
@@ -79,13 +83,12 @@ def _rotation_candidates(src: np.ndarray, dst: np.ndarray) -> list[np.ndarray]:
 
     A, B = axes(src), axes(dst)
     out = [np.eye(3)]
-    for sx in (1, -1):
-        for sy in (1, -1):
-            D = np.diag([sx, sy, sx * sy])
-            R = B.T @ D @ A
-            if np.linalg.det(R) < 0:
-                R = B.T @ np.diag([sx, sy, -sx * sy]) @ A
-            out.append(R)
+    for perm in permutations(range(3)):
+        P = np.eye(3)[list(perm)]
+        for signs in product((1.0, -1.0), repeat=3):
+            R = B.T @ np.diag(signs) @ P @ A
+            if np.linalg.det(R) > 0:
+                out.append(R)
     return out
 
 
