@@ -120,7 +120,8 @@ def label_dots(template_markers: np.ndarray, dots: np.ndarray, gate_mm: float = 
             s, R, t = fit_similarity(tm[keep], dots[j[keep]])
         x = apply_rigid(tm, R, t, s)
         d, _ = tree.query(x)
-        score = float(np.mean(np.minimum(d, 3 * gate_mm)))
+        back, _ = cKDTree(x).query(dots)  # two-sided: a fit that shrinks onto a few dots leaves the rest far
+        score = float(np.mean(np.minimum(d, 3 * gate_mm)) + np.mean(np.minimum(back, 3 * gate_mm)))
         if best is None or score < best[0]:
             best = (score, s, R, t)
     _, s, R, t = best
