@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from grid_mesh import grid_mesh
 import pytest
 import scipy.sparse as sp
 
@@ -16,20 +17,6 @@ from rigbuild.track.laplacian import (
     normal_displacement,
     vertex_normals,
 )
-
-
-def _grid(n=6, size=10.0, bump=0.0):
-    """A (n x n) vertex grid in the z=0 plane (mm), split into triangles; optional smooth bump in z."""
-    xs = np.linspace(0, size, n)
-    X, Y = np.meshgrid(xs, xs)
-    Z = bump * np.sin(X / size * np.pi) * np.sin(Y / size * np.pi)
-    V = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
-    F = []
-    for r in range(n - 1):
-        for c in range(n - 1):
-            a, b, d, e = r * n + c, r * n + c + 1, (r + 1) * n + c, (r + 1) * n + c + 1
-            F += [[a, b, e], [a, e, d]]
-    return V, np.array(F)
 
 
 def _rot(axis, deg):
@@ -68,7 +55,7 @@ def test_normal_displacement_flat_triangle_exact():
 
 def test_normal_displacement_curved_normals_root():
     """With interpolated (non-constant) normals the returned base point solves (u - b) x n(b) = 0."""
-    V, F = _grid(5, 8.0, bump=3.0)
+    V, F = grid_mesh(5, 8.0, bump=3.0)
     N = vertex_normals(V, F)
     rng = np.random.default_rng(0)
     tri = rng.integers(0, len(F), 50)
@@ -84,7 +71,7 @@ def test_normal_displacement_curved_normals_root():
 
 
 def test_fit_vertex_rotations_recovers_rigid_rotation():
-    V, F = _grid(5, 8.0, bump=2.0)
+    V, F = grid_mesh(5, 8.0, bump=2.0)
     solver = LaplacianSolver(V, F)
     R = _rot([1, 2, 3], 25)
     Rv = fit_vertex_rotations(V, V @ R.T + 5.0, solver.edges, solver.edge_weights)
@@ -92,7 +79,7 @@ def test_fit_vertex_rotations_recovers_rigid_rotation():
 
 
 def test_solve_translation_exact_with_all_vertices_constrained():
-    V, F = _grid(5, 8.0, bump=2.0)
+    V, F = grid_mesh(5, 8.0, bump=2.0)
     solver = LaplacianSolver(V, F)
     t = np.array([1.5, -2.0, 0.25])
     # constrain 3 points only: translation keeps delta, so the solution is exactly rest + t
@@ -105,7 +92,7 @@ def test_solve_translation_exact_with_all_vertices_constrained():
 
 
 def test_solve_matches_dense_reference_and_refactor_reuses_symbolic():
-    V, F = _grid(6, 10.0, bump=2.0)
+    V, F = grid_mesh(6, 10.0, bump=2.0)
     solver = LaplacianSolver(V, F, eps=1e-3)
     rng = np.random.default_rng(1)
     for n_matches in (4, 30):  # different constraint sets, same symbolic factorization
@@ -129,7 +116,7 @@ def test_solve_matches_dense_reference_and_refactor_reuses_symbolic():
 def test_rotated_delta_recovers_rigid_rotation_from_sparse_constraints():
     """A rotated copy constrained at a few points: iterating rotated Laplacian coordinates converges to it,
     while fixed rest coordinates cannot reproduce the rotation."""
-    V, F = _grid(7, 12.0, bump=3.0)
+    V, F = grid_mesh(7, 12.0, bump=3.0)
     solver = LaplacianSolver(V, F)
     R = _rot([0, 1, 0.3], 30)
     target = (V - V.mean(0)) @ R.T + V.mean(0) + [2, 0, 1]
@@ -146,7 +133,7 @@ def test_rotated_delta_recovers_rigid_rotation_from_sparse_constraints():
 
 
 def test_solve_rejects_empty_constraints():
-    V, F = _grid(4)
+    V, F = grid_mesh(4)
     solver = LaplacianSolver(V, F)
     with pytest.raises(ValueError):
         solver.solve(np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), 1.0)

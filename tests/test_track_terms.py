@@ -4,6 +4,7 @@ closest-point term, and the render-free source surface lookup (depth map + close
 from __future__ import annotations
 
 import numpy as np
+from grid_mesh import grid_mesh
 
 from rigbuild.camera import Camera, look_at
 from rigbuild.track.laplacian import LaplacianSolver
@@ -12,15 +13,7 @@ from rigbuild.track.register import observed_views, solve_point_to_plane
 
 
 def _grid(n=7, size=12.0):
-    xs = np.linspace(0, size, n)
-    X, Y = np.meshgrid(xs, xs)
-    V = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], 1)
-    F = []
-    for r in range(n - 1):
-        for c in range(n - 1):
-            a, b, d, e = r * n + c, r * n + c + 1, (r + 1) * n + c, (r + 1) * n + c + 1
-            F += [[a, b, e], [a, e, d]]
-    return V, np.array(F)
+    return grid_mesh(n, size)
 
 
 def _front_camera(W=160, H=120, f=200.0, z=100.0, centre=(6.0, 6.0, 0.0)):
