@@ -28,7 +28,7 @@ def main(smk) -> None:
     tracks = dict(zip(list(smk.params.sequences), list(smk.input.tracks)))
     metrics = run_personalization(tracks, template, Path(smk.output.rig).parent, dict(smk.params.personalize or {}),
                                   smk.params.metrics, smk.params.session_dir, dict(smk.params.neutral_frames),
-                                  cameras_json=smk.input.cameras)
+                                  cameras_json=smk.input.cameras, workers=int(smk.threads))
     logging.info("personalization: %s", metrics)
 
 

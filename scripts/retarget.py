@@ -89,7 +89,8 @@ def main(snakemake) -> None:
     res = retarget_performance(training, take.markers, take.names, rig, rig.marker_names, rig.marker_vertices,
                                method, tp, rp, actor_blendshapes=actor_dp,
                                allow_empty_frames=bool(cfg["allow_empty_frames"]),
-                               performance_path=snakemake.input.performance, map_path=snakemake.input.rig)
+                               performance_path=snakemake.input.performance, map_path=snakemake.input.rig,
+                               workers=int(snakemake.threads))
     out = snakemake.output
     fps = take.fps
     meta = {"method": method, "character": rig.name, "params": cfg}

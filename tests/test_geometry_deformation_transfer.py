@@ -133,3 +133,14 @@ def test_ict_identity_transfer(ict_rig):
     out = deformation_transfer(sub.neutral, sub.deltas, sub.faces, sub.neutral)
     # ICT OBJs carry rounding noise below the support tolerance (5e-4 mm); everything else is exact
     assert np.abs(out - sub.deltas).max() < 1e-3
+
+
+def test_two_worker_processes_give_the_same_transfer():
+    verts, faces = grid_mesh(11)
+    deltas = np.concatenate([local_deltas(verts), 0.5 * local_deltas(verts)[::-1]])
+    target = verts * np.array([1.2, 0.9, 1.1]) + 0.02 * verts[:, [1, 2, 0]] ** 2 / 10
+    serial = deformation_transfer(verts, deltas, faces, target)
+    np.testing.assert_array_equal(deformation_transfer(verts, deltas, faces, target, workers=2), serial)
+    sample = np.array([3, 40, 60, 77, 100])
+    sampled = deformation_transfer(verts, deltas, faces, target, sample_vertices=sample, workers=2)
+    np.testing.assert_allclose(sampled, serial[:, sample], atol=1e-12)

@@ -747,7 +747,7 @@ def test_entry_points_write_outputs_and_metrics(tmp_path):
         output=_Named(**out),
         params=_Named(ribera={"mu": 0.0, "lambda_cm": 0.0, "preview_frames": 2}, method="rbf", character="grid",
                       performance="perf00", neutral_frames=[0], metrics_path=str(tmp_path / "metrics.json")),
-        log=[str(tmp_path / "log.txt")], rule="retarget_ribera")
+        log=[str(tmp_path / "log.txt")], rule="retarget_ribera", threads=1)
     runpy.run_path("scripts/retarget.py", init_globals={"snakemake": sm})
     w, shape_names, _ = read_weight_curves_csv(out["weights"])
     np.testing.assert_allclose(w, W, atol=1e-3)

@@ -67,6 +67,21 @@ def test_lift_and_triangulate_exact():
     assert np.isnan(lift(cam, depth, np.array([[W / 2 - 0.5, 10.0]]))).all()
 
 
+def test_lift_fills_a_small_hole_from_the_surrounding_depth_only():
+    cam = _cam("a", (0, 0, -500))
+    depth = np.full((cam.height, cam.width), 500.0, np.float32)
+    X = np.array([[10.0, -5.0, 0.0]])
+    uv = cam.project(X)
+    u, v = np.round(uv[0]).astype(int)
+    depth[v - 3:v + 4, u - 3:u + 4] = np.nan  # stereo's hole on a dark dot
+    assert np.isnan(lift(cam, depth, uv)).all()
+    np.testing.assert_allclose(lift(cam, depth, uv, fill_radius_px=8), X, atol=1e-3)
+    assert np.isnan(lift(cam, depth, uv, fill_radius_px=3)).all()  # the window sees no depth
+    depth[:, : u] = 300.0  # an edge across the window: no depth is guessed
+    depth[v - 3:v + 4, u - 3:u + 4] = np.nan
+    assert np.isnan(lift(cam, depth, uv, fill_radius_px=8)).all()
+
+
 def test_depth_to_image_grid_undistorts():
     cam = _cam("d", dist=(-0.2, 0.05, 0, 0, 0))
     H, W = cam.height, cam.width

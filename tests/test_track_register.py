@@ -10,7 +10,7 @@ from rigbuild.errors import InputError
 from rigbuild.geometry.rigid import apply_rigid
 from rigbuild.track.laplacian import vertex_normals
 from rigbuild.track.mesh import build_tracking_mesh
-from rigbuild.track.register import label_dots, ray_targets, register_neutral, require_markers
+from rigbuild.track.register import label_dots, ray_targets, register_neutral, relabel_dots, require_markers
 
 
 @pytest.fixture(scope="module")
@@ -40,6 +40,28 @@ def test_label_dots_recovers_permutation_and_similarity(head):
     assert s2 == pytest.approx(s, rel=2e-3)
     np.testing.assert_allclose(R2, R, atol=3e-3)
     assert rms < 0.25
+
+
+def test_label_dots_ignores_dark_spots_far_from_the_face(head):
+    tm = head.markers()
+    rng = np.random.default_rng(1)
+    perm = rng.permutation(tm.shape[0])
+    R, t, s = _rot(-20), np.array([-5.0, 20.0, 450.0]), 0.95
+    dots = apply_rigid(tm, R, t, s)[perm] + rng.normal(0, 0.1, tm.shape)
+    centre, size = dots.mean(0), np.linalg.norm(dots - dots.mean(0), axis=1).max()
+    far = centre + rng.choice([-1, 1], (tm.shape[0] // 3, 3)) * 1.5 * size  # hair, background
+    labels, (s2, R2, _), _ = label_dots(tm, np.concatenate([dots, far]))
+    np.testing.assert_array_equal(labels, np.argsort(perm))
+    assert s2 == pytest.approx(s, rel=2e-3)
+    np.testing.assert_allclose(R2, R, atol=3e-3)
+
+
+def test_relabel_dots_is_one_to_one_and_gated():
+    markers = np.array([[0.0, 0, 0], [10, 0, 0], [20, 0, 0], [np.nan, np.nan, np.nan]])
+    dots = np.array([[10.5, 0, 0], [0.4, 0, 0], [14.0, 0, 0], [1.0, 0, 0]])
+    # marker 0 takes dot 1 (0.4 mm), marker 1 dot 0 (0.5 mm); marker 2 has nothing within 3 mm; NaN marker unassigned
+    np.testing.assert_array_equal(relabel_dots(markers, dots, 3.0), [1, 0, -1, -1])
+    np.testing.assert_array_equal(relabel_dots(markers, dots, 10.0), [1, 0, 2, -1])
 
 
 def test_ray_targets_exact():

@@ -121,6 +121,7 @@ def deformation_transfer(
     anchor: np.ndarray | None = None,
     support_tol: float | None = None,
     sample_vertices: np.ndarray | None = None,
+    workers: int = 1,
 ) -> np.ndarray:
     """Transfer expression displacements from a source character to a same-topology target.
 
@@ -150,6 +151,8 @@ def deformation_transfer(
         split into connected pieces (vertices sharing a triangle) whose systems are independent, and
         only the pieces that contain a sampled vertex (or belong to a mesh component moving as a whole
         that contains one) are solved.
+    workers : processes solving the shapes (forked; the shapes are independent systems). The result
+        does not depend on it.
 
     Returns
     -------
@@ -187,7 +190,7 @@ def deformation_transfer(
     if anchor is not None:
         fixed_always[np.asarray(anchor, dtype=np.int64)] = True
     if sample is None:
-        out = _transfer(src, tgt, deltas, faces, fixed_always, tol, None)
+        out = _transfer(src, tgt, deltas, faces, fixed_always, tol, None, workers)
         return out[0] if single else out
     if sample.size == 0:
         out = np.zeros((deltas.shape[0], 0, 3))
@@ -198,14 +201,15 @@ def deformation_transfer(
     new_id = np.cumsum(keep_v) - 1
     keep_f = keep_v[faces[:, 0]]  # a triangle lies in one component
     out = _transfer(src[keep_v], tgt[keep_v], deltas[:, keep_v], new_id[faces[keep_f]], fixed_always[keep_v],
-                    tol, new_id[sample])
+                    tol, new_id[sample], workers)
     return out[0] if single else out
 
 
 def _transfer(src: np.ndarray, tgt: np.ndarray, deltas: np.ndarray, faces: np.ndarray, fixed_always: np.ndarray,
-              tol: float, sample: np.ndarray | None) -> np.ndarray:
+              tol: float, sample: np.ndarray | None, workers: int = 1) -> np.ndarray:
     """The work of :func:`deformation_transfer`: src, tgt (V, 3), deltas (K, V, 3), faces (F, 3), fixed_always
-    (V,) bool (anchors), tol (support tolerance), sample (S,) vertex ids or None. Returns (K, V or S, 3)."""
+    (V,) bool (anchors), tol (support tolerance), sample (S,) vertex ids or None, workers (processes).
+    Returns (K, V or S, 3)."""
     V = src.shape[0]
     coef = _gradient_coefficients(tgt, faces)  # (F, 3 corners, 3 rows)
     # G^T G (lower triangle, COO) assembled from the per-triangle 3x3 corner blocks
@@ -235,13 +239,15 @@ def _transfer(src: np.ndarray, tgt: np.ndarray, deltas: np.ndarray, faces: np.nd
     magnitude = np.sqrt(np.einsum("kvc,kvc->kv", deltas, deltas))
     sample_comps = None if sample is None else np.unique(comp[sample])
 
-    out = np.zeros((deltas.shape[0],) + ((sample.size, 3) if sample is not None else (V, 3)))
     local = np.full(V, -1, dtype=np.int64)
-    for k in range(deltas.shape[0]):
+    n_out = sample.size if sample is not None else V
+
+    def solve_shape(k: int) -> np.ndarray:
+        """(V or S, 3) target displacement of shape k."""
         dk = deltas[k]
         moving = (magnitude[k] > tol) & ~fixed_always
         if not moving.any():
-            continue
+            return np.zeros((n_out, 3))
         # components that move as a whole: pin one vertex, shift afterwards
         moving_count = np.bincount(comp[moving], minlength=n_comp)
         floating = np.flatnonzero((moving_count == comp_size) & (comp_size > 0))
@@ -278,7 +284,51 @@ def _transfer(src: np.ndarray, tgt: np.ndarray, deltas: np.ndarray, faces: np.nd
             r_src = np.sqrt((s_src**2).sum(1).mean())
             ratio = float(np.sqrt((s_tgt**2).sum(1).mean()) / r_src) if r_src > 0 else 1.0
             sol[members] += ratio * dk[members].mean(0) - sol[members].mean(0)
-        out[k] = sol if sample is None else sol[sample]
+        return sol if sample is None else sol[sample]
+
+    moving_counts = ((magnitude > tol) & ~fixed_always).sum(axis=1)
+    return _map_shapes(solve_shape, deltas.shape[0], (n_out, 3), moving_counts, workers)
+
+
+_FORKED_SHAPE_SOLVER = None  # the per-shape closure a forked worker inherits (see _map_shapes)
+
+
+def _solve_shapes_in_worker(ks: list[int]) -> list[np.ndarray]:
+    return [_FORKED_SHAPE_SOLVER(k) for k in ks]
+
+
+def _map_shapes(solve_shape, n_shapes: int, out_shape: tuple[int, int], cost: np.ndarray,
+                workers: int) -> np.ndarray:
+    """(K, *out_shape) of ``solve_shape(k)`` for every shape, in ``workers`` forked processes when > 1.
+
+    CHOLMOD (through cvxopt) holds the GIL, so threads would not overlap; forked workers inherit the
+    precomputed operators without copying or pickling them and return only their shapes. Shapes are
+    dealt to the workers largest first (``cost`` (K,), e.g. support sizes) to balance them. Falls back to
+    one process where ``fork`` is unavailable."""
+    import multiprocessing as mp
+
+    global _FORKED_SHAPE_SOLVER
+    out = np.zeros((n_shapes,) + tuple(out_shape))
+    workers = int(min(max(workers, 1), n_shapes))
+    if workers > 1 and "fork" in mp.get_all_start_methods():
+        loads = np.zeros(workers)
+        chunks: list[list[int]] = [[] for _ in range(workers)]
+        for k in np.argsort(-np.asarray(cost), kind="stable"):
+            w = int(np.argmin(loads))
+            chunks[w].append(int(k))
+            loads[w] += float(cost[k]) + 1.0
+        _FORKED_SHAPE_SOLVER = solve_shape
+        try:
+            with mp.get_context("fork").Pool(workers) as pool:
+                results = pool.map(_solve_shapes_in_worker, chunks)
+        finally:
+            _FORKED_SHAPE_SOLVER = None
+        for ks, res in zip(chunks, results):
+            for k, r in zip(ks, res):
+                out[k] = r
+        return out
+    for k in range(n_shapes):
+        out[k] = solve_shape(k)
     return out
 
 

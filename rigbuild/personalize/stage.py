@@ -78,6 +78,7 @@ def run_personalization(
     session_dir: str | os.PathLike | None = None,
     neutral_frames: Mapping[str, int] | None = None,
     cameras_json: str | os.PathLike | None = None,
+    workers: int = 1,
 ) -> dict:
     """Run the whole stage.
 
@@ -91,6 +92,7 @@ def run_personalization(
         into the ground-truth world (similarity on the camera centres) before it is compared.
     session_dir : the session folder; its ``ground_truth/`` (if any) feeds the GT metrics.
     neutral_frames : sequence -> the session frame number of its neutral pose (SequenceSpec.neutral_frame).
+    workers : processes for the initial rig's per-shape deformation transfer (the job's threads).
 
     Returns the metrics dict.
     """
@@ -123,7 +125,7 @@ def run_personalization(
     log.info("neutral: sequence %s, tracked frame index %d", nseq, idx)
 
     region = template.face_vertices if opts.get("fit_region", "face") == "face" else None
-    Dstar = deformation_transfer(template.neutral, template.deltas, template.faces, b0)
+    Dstar = deformation_transfer(template.neutral, template.deltas, template.faces, b0, workers=workers)
     zero = [template.shape_names[k] for k in range(template.n_shapes) if not np.any(Dstar[k])]
     if zero:
         raise InputError(f"all-zero shape(s) in the template rig: {', '.join(zero)}",

@@ -200,12 +200,13 @@ def transfer_displacements(pmap: ProportionMap, target_neutral: np.ndarray, targ
 
 
 def transfer_displacements_mesh(pmap: ProportionMap, target_mesh_neutral: np.ndarray, target_mesh_deltas: np.ndarray,
-                                faces: np.ndarray, marker_vertices: np.ndarray) -> np.ndarray:
+                                faces: np.ndarray, marker_vertices: np.ndarray, workers: int = 1) -> np.ndarray:
     """``"deformation"``: the target's blendshapes deformation-transferred onto the source-proportioned
     proxy ``pmap(target_mesh_neutral)``, sampled at the markers.
 
     target_mesh_neutral : (V, 3) mm; target_mesh_deltas : (K, V, 3) mm; faces : (F, 3) triangles;
     marker_vertices : (M,) vertex ids of the markers (in the order of ``pmap.centers``).
+    workers : processes for the per-shape solves (see ``deformation_transfer``).
     The rotation of the map (:func:`polar_rotation` of the RBF's linear part ``A``: identity for any
     pure stretch, unlike a Kabsch fit of anisotropically scaled point sets, which turns 2-3 degrees
     on the stylized character and costs 0.01-0.02 of correlation) is factored out first, so that the transfer sees only the change of scale and
@@ -226,7 +227,7 @@ def transfer_displacements_mesh(pmap: ProportionMap, target_mesh_neutral: np.nda
     R = polar_rotation(pmap.affine[1:].T)
     proxy_aligned = proxy @ R  # R^T x: source proportions in the target's orientation
     # only the markers are read: solve just the pieces of each shape's support that reach them (exact)
-    moved = deformation_transfer(nv, dv, faces, proxy_aligned, sample_vertices=mv)
+    moved = deformation_transfer(nv, dv, faces, proxy_aligned, sample_vertices=mv, workers=workers)
     return moved @ R.T
 
 

@@ -1093,7 +1093,7 @@ class RiberaModel:
 METHODS = ("ribera", "ribera_activation", "ribera_fit", "rbf", "deformation", "parallel")
 
 
-def deformation_guesses(character: Rig, vertex_ids: np.ndarray, a0: np.ndarray) -> np.ndarray:
+def deformation_guesses(character: Rig, vertex_ids: np.ndarray, a0: np.ndarray, workers: int = 1) -> np.ndarray:
     """Initial guesses g_k (K, M, 3) mm by deformation transfer (``TransferParams.guess = "deformation"``).
 
     The thin-plate RBF that maps the character's neutral markers onto the actor's ``a0`` (M, 3) warps the
@@ -1102,11 +1102,11 @@ def deformation_guesses(character: Rig, vertex_ids: np.ndarray, a0: np.ndarray) 
     Unlike the pointwise RBF guess, this carries a shape's spatial gradients (a jaw hinge that moved, a lip
     roll on a wider mouth) into the new proportions. Uses ``rigbuild.retarget.proportion``. Only the marker
     vertices are solved for (``deformation_transfer(..., sample_vertices=...)``: the support pieces that reach
-    a marker; exact, not a truncation).
+    a marker; exact, not a truncation). ``workers``: processes for the per-shape solves (same result).
     """
     vid = np.asarray(vertex_ids, dtype=np.int64)
     pmap = fit_proportion_map(character.neutral[vid], np.asarray(a0, float), "r")
-    return transfer_displacements_mesh(pmap, character.neutral, character.deltas, character.faces, vid)
+    return transfer_displacements_mesh(pmap, character.neutral, character.deltas, character.faces, vid, workers)
 
 
 def build_model(
@@ -1121,6 +1121,7 @@ def build_model(
     actor_blendshapes: np.ndarray | None = None,
     uv: np.ndarray | None = None,
     contact_pairs: np.ndarray | None = None,
+    workers: int = 1,
 ) -> RiberaModel:
     """Prepare retargeting of an actor's markers onto ``character``.
 
@@ -1141,6 +1142,8 @@ def build_model(
     segment_starts : first frame of each concatenated training sequence.
     transfer_params.guess : g_k of ``"ribera"`` / ``"ribera_activation"`` (``"rbf"`` as in the paper, or
         ``"deformation"``).
+
+    workers : processes for the deformation-transfer guesses (the job's threads; same result).
 
     All methods retarget with the same section-5 energy (E_Fit + mu E_Prior + lambda E_Sparse).
     """
@@ -1169,7 +1172,7 @@ def build_model(
         if tp.guess not in ("rbf", "deformation"):
             raise InputError(f"unknown initial guess '{tp.guess}'", fix="use rbf or deformation")
         use_dt = method == "deformation" or (method != "rbf" and tp.guess == "deformation")
-        dg = deformation_guesses(ch, vertex_ids, a0) if use_dt else rbf_transfer(s0, ds, a0)
+        dg = deformation_guesses(ch, vertex_ids, a0, workers) if use_dt else rbf_transfer(s0, ds, a0)
         rigidity = rigidity_weights(dg)
         if method in ("rbf", "deformation"):
             dp = dg

@@ -105,6 +105,7 @@ def retarget_performance(
     allow_empty_frames: bool = True,
     performance_path: str | os.PathLike | None = None,
     map_path: str | os.PathLike | None = None,
+    workers: int = 1,
 ) -> RetargetResult:
     """Retarget one performance onto one character.
 
@@ -113,6 +114,7 @@ def retarget_performance(
     contact_pairs : (C, 2) indices into ``map_names`` (converted to the training order here).
     actor_blendshapes : (K, M, 3) in training marker order, for ``method="parallel"``.
     Frames with fewer than 3 visible markers raise unless ``allow_empty_frames`` (weights interpolated).
+    workers : processes for the transfer's deformation-transfer guesses (the job's threads).
     """
     t0 = time.perf_counter()
     vids = map_markers_to_vertices(training.names, map_names, map_vertices, character.name, map_path)
@@ -125,7 +127,8 @@ def retarget_performance(
     ok = check_frames(perf, what="performance", path=performance_path, allow_empty=allow_empty_frames)
     check_frames(training.markers, what="training sequence", allow_empty=True)
     model = build_model(character, vids, training.neutral, training.markers, method, transfer_params,
-                        retarget_params, training.segment_starts, actor_blendshapes, contact_pairs=pairs)
+                        retarget_params, training.segment_starts, actor_blendshapes, contact_pairs=pairs,
+                        workers=workers)
     t1 = time.perf_counter()
     w = np.zeros((perf.shape[0], model.dp.shape[0]))
     w[ok] = model.retarget(perf[ok])

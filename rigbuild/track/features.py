@@ -99,15 +99,46 @@ def depth_discontinuity(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return out
 
 
-def lift(camera: Camera, depth: np.ndarray, uv: np.ndarray, max_step_mm: float = 2.0) -> np.ndarray:
+def window_median_depth(depth: np.ndarray, uv: np.ndarray, radius_px: int, max_spread_mm: float) -> np.ndarray:
+    """(N,) median of the valid depths in the (2r+1)^2 window around each pixel uv (N, 2); NaN where the
+    window has fewer than a quarter valid pixels or their 10-90 percentile spread exceeds ``max_spread_mm``
+    (a depth edge). For small holes a stereo reconstruction leaves on dark, textureless marks such as
+    painted dots: the surrounding skin gives the depth."""
+    d = np.asarray(depth, dtype=np.float64)
+    H, W = d.shape
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    out = np.full(uv.shape[0], np.nan)
+    r = int(radius_px)
+    for i, (u, v) in enumerate(uv):
+        if not (np.isfinite(u) and np.isfinite(v)):
+            continue
+        x0, y0 = int(round(u)), int(round(v))
+        win = d[max(y0 - r, 0):min(y0 + r + 1, H), max(x0 - r, 0):min(x0 + r + 1, W)]
+        vals = win[np.isfinite(win)]
+        if vals.size < max(win.size // 4, 1):
+            continue
+        lo, hi = np.percentile(vals, [10, 90])
+        if hi - lo <= max_spread_mm:
+            out[i] = float(np.median(vals))
+    return out
+
+
+def lift(camera: Camera, depth: np.ndarray, uv: np.ndarray, max_step_mm: float = 2.0,
+         fill_radius_px: int = 0) -> np.ndarray:
     """Lift pixels uv (N, 2) to world points (N, 3) mm with a camera-z depth map (H, W) mm (NaN = none).
 
-    Points on a depth discontinuity (2x2 neighbourhood spread > ``max_step_mm``) or without depth are NaN.
+    Points on a depth discontinuity (2x2 neighbourhood spread > ``max_step_mm``) or without depth are NaN;
+    with ``fill_radius_px`` > 0 those without depth take :func:`window_median_depth` instead (spread up to
+    twice ``max_step_mm``).
     """
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     z = sample_bilinear(depth, uv)
     step = depth_discontinuity(depth, uv)
     z[~(step <= max_step_mm)] = np.nan
+    if fill_radius_px > 0:
+        hole = ~np.isfinite(z)
+        if hole.any():
+            z[hole] = window_median_depth(depth, uv[hole], fill_radius_px, 2.0 * max_step_mm)
     out = np.full((uv.shape[0], 3), np.nan)
     ok = np.isfinite(z)
     if ok.any():

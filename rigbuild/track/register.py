@@ -98,7 +98,9 @@ def label_dots(template_markers: np.ndarray, dots: np.ndarray, gate_mm: float = 
 
     template_markers (M, 3) mm, dots (D, 3) mm. Similarity ICP (nearest neighbours, trimmed) from each
     candidate rotation; the best final fit is refined with an optimal one-to-one assignment
-    (Hungarian) gated at ``gate_mm``. Returns labels (M,) dot index per marker or -1, the similarity
+    (Hungarian, :func:`relabel_dots`) gated at ``gate_mm``, alternated with the similarity and then an
+    affine map fitted to the pairs (the actor's proportions move some markers past the gate of a
+    similarity). Returns labels (M,) dot index per marker or -1, the similarity
     (s, R, t) mapping template -> dots, and the RMS of the labeled pairs (mm).
     """
     tm = np.asarray(template_markers, dtype=np.float64)
@@ -106,11 +108,19 @@ def label_dots(template_markers: np.ndarray, dots: np.ndarray, gate_mm: float = 
     if dots.shape[0] < 4:
         raise InputError(f"only {dots.shape[0]} painted dots were found on the neutral frame (need >= 4)",
                          fix="check the dot detector thresholds (track.dots) and that the actor's dots are visible")
+    # the candidate alignments come from the dots near the bulk of them (dark spots in the hair or on the
+    # background would tilt the principal axes and the scale); all dots are labeled at the end
+    all_dots = dots
+    rad = np.linalg.norm(dots - np.median(dots, axis=0), axis=1)
+    core = rad <= 2.0 * np.median(rad)
+    if core.sum() >= max(4, tm.shape[0] // 2):
+        dots = dots[core]
     tree = cKDTree(dots)
-    s0 = np.sqrt(((dots - dots.mean(0)) ** 2).sum(1).mean() / max(((tm - tm.mean(0)) ** 2).sum(1).mean(), 1e-12))
+    dc, tc = dots.mean(0), tm.mean(0)
+    s0 = np.sqrt(((dots - dc) ** 2).sum(1).mean() / max(((tm - tc) ** 2).sum(1).mean(), 1e-12))
     best = None
     for R0 in _rotation_candidates(tm, dots):
-        s, R, t = s0, R0, dots.mean(0) - s0 * R0 @ tm.mean(0)
+        s, R, t = s0, R0, dc - s0 * R0 @ tc
         for _ in range(iterations):
             x = apply_rigid(tm, R, t, s)
             d, j = tree.query(x)
@@ -121,25 +131,50 @@ def label_dots(template_markers: np.ndarray, dots: np.ndarray, gate_mm: float = 
         x = apply_rigid(tm, R, t, s)
         d, _ = tree.query(x)
         back, _ = cKDTree(x).query(dots)  # two-sided: a fit that shrinks onto a few dots leaves the rest far
+        # (the nearest dots only on the way back: some dark spots are not painted dots)
+        back = np.sort(back)[:max(int(np.ceil(0.7 * back.size)), min(back.size, tm.shape[0]) // 2)]
         score = float(np.mean(np.minimum(d, 3 * gate_mm)) + np.mean(np.minimum(back, 3 * gate_mm)))
         if best is None or score < best[0]:
             best = (score, s, R, t)
     _, s, R, t = best
+    dots = all_dots
     labels = np.full(tm.shape[0], -1, dtype=np.int64)
-    for _ in range(3):
-        x = apply_rigid(tm, R, t, s)
-        cost = np.linalg.norm(x[:, None, :] - dots[None, :, :], axis=2)
-        rows, cols = linear_sum_assignment(np.minimum(cost, 10 * gate_mm))
-        ok = cost[rows, cols] <= gate_mm
-        labels[:] = -1
-        labels[rows[ok]] = cols[ok]
+    x = apply_rigid(tm, R, t, s)
+    for it in range(4):
+        labels = relabel_dots(x, dots, gate_mm)
+        ok = labels >= 0
         if ok.sum() < 4:
             raise InputError(f"only {int(ok.sum())} dots could be matched to the template's markers",
                              fix="the neutral frame must show the actor's painted dots in a neutral pose")
-        s, R, t = fit_similarity(tm[rows[ok]], dots[cols[ok]])
+        s, R, t = fit_similarity(tm[ok], dots[labels[ok]])
+        x = apply_rigid(tm, R, t, s)
+        if ok.sum() >= 12 and it >= 1:  # the actor's proportions: an affine map once enough pairs hold it
+            A, b = fit_affine(tm[ok], dots[labels[ok]])
+            x = tm @ A.T + b
     m = labels >= 0
     rms = float(np.sqrt(np.mean(np.sum((apply_rigid(tm[m], R, t, s) - dots[labels[m]]) ** 2, axis=1))))
     return labels, (float(s), R, t), rms
+
+
+def relabel_dots(marker_positions: np.ndarray, dots: np.ndarray, gate_mm: float) -> np.ndarray:
+    """One-to-one assignment of dots to markers at their current estimated positions.
+
+    marker_positions (M, 3) mm (NaN rows: not assignable), dots (D, 3) mm. Optimal assignment (Hungarian)
+    of the pairwise distances; pairs farther than ``gate_mm`` are dropped. Returns labels (M,): the dot
+    index of each marker or -1.
+    """
+    x = np.asarray(marker_positions, dtype=np.float64)
+    dots = np.asarray(dots, dtype=np.float64)
+    labels = np.full(x.shape[0], -1, dtype=np.int64)
+    if dots.shape[0] == 0 or x.shape[0] == 0:
+        return labels
+    cost = np.linalg.norm(x[:, None, :] - dots[None, :, :], axis=2)
+    cost[~np.isfinite(cost)] = np.inf
+    big = 10.0 * gate_mm
+    rows, cols = linear_sum_assignment(np.minimum(cost, big))
+    ok = cost[rows, cols] <= gate_mm
+    labels[rows[ok]] = cols[ok]
+    return labels
 
 
 def fit_affine(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -273,6 +308,8 @@ def register_neutral(
     rotate_delta: bool = False,
     depth_views: list | None = None,
     visibility_mm: float = 2.0,
+    relabel_at: tuple[int, ...] = (4, 8),
+    relabel_gate_mm: float = 3.0,
 ) -> NeutralRegistration:
     """Register the template's neutral to the actor's neutral scan.
 
@@ -293,6 +330,9 @@ def register_neutral(
     observed in at least one view within ``max(gate, visibility_mm)`` (unobserved vertices - mouth interior,
     nostrils, behind the ears - follow the Laplacian instead of snapping onto a nearby visible surface).
 
+    relabel_at : iterations before which the dots are labeled again from the current mesh's markers
+        (:func:`relabel_dots`, gate ``relabel_gate_mm``); () keeps the first labeling.
+
     Returns :class:`NeutralRegistration` (vertices in full template topology).
     """
     require_markers(template)
@@ -312,29 +352,39 @@ def register_neutral(
     solver = LaplacianSolver(rest, mesh.faces)
     tree = cKDTree(scan_points)
     mk_local = mesh.full_to_local[template.marker_vertices]
-    has_dot = (labels >= 0) & (mk_local >= 0)
-    dot_tri, dot_bary = mesh.vertex_points(mk_local[has_dot])
-    dot_targets = dots[labels[has_dot]]
-    if rays is not None and rays.marker.size:
-        if ray_labels_are_dots:
-            dot_to_marker = np.full(dots.shape[0], -1, dtype=np.int64)
-            dot_to_marker[labels[labels >= 0]] = np.flatnonzero(labels >= 0)
-            r_marker = dot_to_marker[rays.marker]
-        else:
-            r_marker = np.asarray(rays.marker, dtype=np.int64)
-        r_ok = (r_marker >= 0)
-        r_ok[r_ok] &= mk_local[r_marker[r_ok]] >= 0
-        r_local = mk_local[r_marker[r_ok]]
-        r_tri, r_bary = mesh.vertex_points(r_local)
-        r_origin, r_dir = rays.origin[r_ok], rays.direction[r_ok]
-    else:
-        r_local = np.zeros(0, dtype=np.int64)
+
+    def constraints(labels: np.ndarray):
+        """Dot and ray constraints of a labeling: (has_dot, dot tri/bary/targets, ray local/tri/bary/origin/dir)."""
+        has_dot = (labels >= 0) & (mk_local >= 0)
+        dot_tri, dot_bary = mesh.vertex_points(mk_local[has_dot])
+        ray = (np.zeros(0, dtype=np.int64),) + (None,) * 4
+        if rays is not None and rays.marker.size:
+            if ray_labels_are_dots:
+                dot_to_marker = np.full(dots.shape[0], -1, dtype=np.int64)
+                dot_to_marker[labels[labels >= 0]] = np.flatnonzero(labels >= 0)
+                r_marker = dot_to_marker[rays.marker]
+            else:
+                r_marker = np.asarray(rays.marker, dtype=np.int64)
+            r_ok = (r_marker >= 0)
+            r_ok[r_ok] &= mk_local[r_marker[r_ok]] >= 0
+            r_local = mk_local[r_marker[r_ok]]
+            ray = (r_local,) + mesh.vertex_points(r_local) + (rays.origin[r_ok], rays.direction[r_ok])
+        return (has_dot, dot_tri, dot_bary, dots[labels[has_dot]]) + ray
+
+    has_dot, dot_tri, dot_bary, dot_targets, r_local, r_tri, r_bary, r_origin, r_dir = constraints(labels)
     face = mesh.face_local
     p = rest.copy()
     history = []
     from rigbuild.track.laplacian import vertex_normals
 
     for it in range(iterations):
+        if it in relabel_at:
+            # the painted dots sit at the markers of the actor's surface: once the mesh has taken the scan's
+            # shape its markers are near their dots, so dots the first (affine) labeling could not reach or
+            # confused are assigned again, one to one, with a tighter gate
+            at = np.where((mk_local >= 0)[:, None], p[np.maximum(mk_local, 0)], np.nan)
+            labels = relabel_dots(at, dots, relabel_gate_mm)
+            has_dot, dot_tri, dot_bary, dot_targets, r_local, r_tri, r_bary, r_origin, r_dir = constraints(labels)
         a = it / max(iterations - 1, 1)
         lam = lam_schedule[0] * (lam_schedule[1] / lam_schedule[0]) ** a
         gate = gate_schedule_mm[0] * (gate_schedule_mm[1] / gate_schedule_mm[0]) ** a

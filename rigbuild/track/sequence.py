@@ -94,12 +94,15 @@ def frame_dots(frame: ViewFrame, params: DotParams) -> np.ndarray:
     return frame._dots
 
 
-def neutral_dots(frames: list[ViewFrame], params: DotParams, cluster_mm: float = 2.5
+def neutral_dots(frames: list[ViewFrame], params: DotParams, cluster_mm: float = 2.5, fill_radius_px: int = 8
                  ) -> tuple[np.ndarray, RayObservations]:
     """Unlabeled 3-D dots of a neutral frame: detections lifted with the depth maps, clustered across views,
     triangulated from their 2-D detections. Returns dots (D, 3) mm and the detections as rays (dot index)."""
     dets = [frame_dots(f, params) for f in frames]
-    lifted = [lift(f.camera, f.depth, d) if d.shape[0] else np.zeros((0, 3)) for f, d in zip(frames, dets)]
+    # stereo often leaves a hole on a dark dot: the skin around it gives the depth for the clustering (the dots
+    # themselves are triangulated from their 2-D centres below)
+    lifted = [lift(f.camera, f.depth, d, fill_radius_px=fill_radius_px) if d.shape[0] else np.zeros((0, 3))
+              for f, d in zip(frames, dets)]
     clusters = cluster_lifted_dots(lifted, radius_mm=cluster_mm)
     C, D = len(frames), len(clusters)
     uv = np.full((C, D, 2), np.nan)
