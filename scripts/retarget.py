@@ -46,6 +46,7 @@ PARAMS = {
     "allow_empty_frames": True,
     "preview_frames": 4,
     "primary": PRIMARY_RIBERA_METHOD,  # the variant also reported as retarget.ribera.* (issue 7's keys)
+    "marker_lowpass_hz": None,  # zero-phase low-pass of the take's markers (-3 dB, Hz) before solving
 }
 
 
@@ -90,7 +91,9 @@ def main(snakemake) -> None:
                                method, tp, rp, actor_blendshapes=actor_dp,
                                allow_empty_frames=bool(cfg["allow_empty_frames"]),
                                performance_path=snakemake.input.performance, map_path=snakemake.input.rig,
-                               workers=int(snakemake.threads))
+                               workers=int(snakemake.threads),
+                               marker_lowpass_hz=None if cfg["marker_lowpass_hz"] is None else float(cfg["marker_lowpass_hz"]),
+                               fps=take.fps)
     out = snakemake.output
     fps = take.fps
     meta = {"method": method, "character": rig.name, "params": cfg}

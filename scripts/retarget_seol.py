@@ -53,6 +53,7 @@ PARAMS = {
     # jacobian | local_affine | affine | none
     "scale_match": "rbf",
     "scale_match_kernel": "r",     # the RBF's phi: r (the paper) | r3 | tps
+    "marker_lowpass_hz": None,     # zero-phase low-pass of the take's markers (-3 dB, Hz) before solving
 }
 
 
@@ -102,7 +103,8 @@ def main(snakemake) -> None:
                         boundary_frames=cfg["boundary_frames"], pins=pins, boundary_values=cfg["boundary_values"],
                         rigid_weights=rw, head_refine_iterations=int(cfg["head_refine_iterations"]), beta=beta,
                         alpha_perframe=float(cfg["alpha_perframe"]), weight_range=tuple(cfg["weight_range"]),
-                        scale_match=str(cfg["scale_match"]), scale_match_kernel=str(cfg["scale_match_kernel"]))
+                        scale_match=str(cfg["scale_match"]), scale_match_kernel=str(cfg["scale_match_kernel"]),
+                        marker_lowpass_hz=None if cfg["marker_lowpass_hz"] is None else float(cfg["marker_lowpass_hz"]))
     seconds = time.perf_counter() - t0
     fps = take.fps
     out = snakemake.output

@@ -7,7 +7,8 @@ Conventions
 - Weight curves are ``(F, K)`` float arrays, one column per shape name.
 
 Contents: marker-to-character mapping by marker name (with clear errors), marker-set checks for
-performances, per-frame rigid stabilization of marker frames, the "observable shapes" test, weight-curve
+performances, zero-phase low-pass filtering of marker trajectories, per-frame rigid stabilization of marker
+frames, the "observable shapes" test, weight-curve
 metrics (MAE, per-shape Pearson correlation) and weight-curve writers (CSV, JSON).
 """
 
@@ -140,6 +141,40 @@ def check_frames(
             "interpolated from the neighbouring frames)",
         )
     return ok
+
+
+def lowpass_sigma_frames(fps: float, cutoff_hz: float) -> float:
+    """Standard deviation (frames) of the Gaussian whose response is 1/sqrt(2) (-3 dB) at ``cutoff_hz``:
+    ``H(f) = exp(-2 pi^2 sigma_t^2 f^2)``, so ``sigma_t = sqrt(ln 2) / (2 pi f_c)`` = 0.1325 / f_c s."""
+    fps, cutoff_hz = float(fps), float(cutoff_hz)
+    if not (fps > 0 and 0 < cutoff_hz < fps / 2):
+        raise InputError(f"marker low-pass cutoff {cutoff_hz} Hz must lie in (0, {fps / 2:g}) Hz (half the {fps:g} fps)",
+                         path="config", fix="set marker_lowpass_hz below the Nyquist frequency, or null to disable it")
+    return float(np.sqrt(np.log(2.0)) / (2.0 * np.pi * cutoff_hz) * fps)
+
+
+def lowpass_markers(markers: np.ndarray, fps: float, cutoff_hz: float) -> np.ndarray:
+    """Zero-phase Gaussian low-pass of marker trajectories, as mocap pipelines filter before solving.
+
+    markers : (F, M, 3) mm, NaN gaps; fps : frames per second; cutoff_hz : -3 dB frequency
+    (:func:`lowpass_sigma_frames`). Gaps stay NaN and do not leak into their neighbours: each sample is the
+    Gaussian-weighted mean of the *visible* samples around it (normalized convolution). Sensor noise is
+    white while facial motion lives below ~10 Hz, so a 5-8 Hz cutoff removes most of the noise and keeps
+    the motion (an offline filter: it needs the frames after the current one).
+    Returns (F, M, 3) mm.
+    """
+    from scipy.ndimage import gaussian_filter1d
+
+    X = np.asarray(markers, dtype=np.float64)
+    if X.ndim != 3 or X.shape[2] != 3:
+        raise InputError(f"markers must be (frames, markers, 3), got {X.shape}")
+    sigma = lowpass_sigma_frames(fps, cutoff_hz)
+    seen = np.isfinite(X).all(axis=2, keepdims=True)
+    num = gaussian_filter1d(np.where(seen, X, 0.0), sigma, axis=0, mode="nearest", truncate=4.0)
+    den = gaussian_filter1d(seen.astype(np.float64), sigma, axis=0, mode="nearest", truncate=4.0)
+    out = num / np.maximum(den, 1e-12)
+    out[~np.broadcast_to(seen, X.shape)] = np.nan
+    return out
 
 
 def interpolate_missing_rows(values: np.ndarray, ok: np.ndarray) -> np.ndarray:

@@ -18,6 +18,7 @@ from rigbuild.retarget.common import (
     average_neutral,
     check_frames,
     interpolate_missing_rows,
+    lowpass_markers,
     map_markers_to_vertices,
     reorder_markers,
     stabilize,
@@ -106,6 +107,8 @@ def retarget_performance(
     performance_path: str | os.PathLike | None = None,
     map_path: str | os.PathLike | None = None,
     workers: int = 1,
+    marker_lowpass_hz: float | None = None,
+    fps: float | None = None,
 ) -> RetargetResult:
     """Retarget one performance onto one character.
 
@@ -115,6 +118,8 @@ def retarget_performance(
     actor_blendshapes : (K, M, 3) in training marker order, for ``method="parallel"``.
     Frames with fewer than 3 visible markers raise unless ``allow_empty_frames`` (weights interpolated).
     workers : processes for the transfer's deformation-transfer guesses (the job's threads).
+    marker_lowpass_hz, fps : optional zero-phase low-pass of the performance markers (-3 dB frequency;
+        :func:`rigbuild.retarget.common.lowpass_markers`) before retargeting; not in the paper (offline only).
     """
     t0 = time.perf_counter()
     vids = map_markers_to_vertices(training.names, map_names, map_vertices, character.name, map_path)
@@ -124,6 +129,10 @@ def retarget_performance(
         pairs = np.array([[pos[map_names[a]], pos[map_names[b]]] for a, b in contact_pairs
                           if map_names[a] in pos and map_names[b] in pos], dtype=np.int64).reshape(-1, 2)
     perf = reorder_markers(performance, performance_names, training.names, what="performance", path=performance_path)
+    if marker_lowpass_hz is not None:
+        if fps is None:
+            raise InputError("marker_lowpass_hz needs the performance's fps", fix="pass fps=")
+        perf = lowpass_markers(perf, fps, marker_lowpass_hz)
     ok = check_frames(perf, what="performance", path=performance_path, allow_empty=allow_empty_frames)
     check_frames(training.markers, what="training sequence", allow_empty=True)
     model = build_model(character, vids, training.neutral, training.markers, method, transfer_params,
