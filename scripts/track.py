@@ -175,9 +175,15 @@ def run_sequence(smk) -> None:
     V, C, markers, stats = track_rom_sequence(template, neutral, anchor, frames, frame_ids, seq.name, params,
                                               progress=lambda s: log.info("frame %d: %s", s.frame, s))
     seconds = time.perf_counter() - t0
+    lost = np.asarray([s.lost for s in stats], dtype=bool)
+    if lost.any():  # lost frames reach the retargeting stages as marker gaps, not as wrong positions
+        markers = markers.copy()
+        markers[lost] = np.nan
+        log.warning("%s: %d lost frame(s) %s written as marker gaps (NaN)", seq.name, int(lost.sum()),
+                    [s.frame for s in stats if s.lost])
     out = smk.output
     save_npz(out.vertices, vertices=V, confidence=C, frames=np.asarray(frame_ids),
-             lost=np.asarray([s.lost for s in stats]))
+             lost=lost)
     save_npz(out.markers, markers=markers.astype(np.float32), marker_names=np.asarray(template.marker_names),
              fps=np.float64(spec.fps), frames=np.asarray(frame_ids))
     write_markers_c3d(out.c3d, markers, template.marker_names, spec.fps)

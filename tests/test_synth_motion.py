@@ -9,7 +9,8 @@ from rigbuild.errors import InputError
 from rigbuild.io.markers import read_markers, write_markers_c3d, write_markers_npz
 from rigbuild.rig import Rig
 from rigbuild.synth.actor import make_actor_rig
-from rigbuild.synth.motion import make_head_motion, make_performance_weights, make_rom_weights, markers_from_rig
+from rigbuild.synth.motion import (apply_base_shapes, make_head_motion, make_performance_weights, make_rom_weights,
+                                   markers_from_rig)
 
 NAMES = ["jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L",
          "browInnerUp_R", "cheekSquint_L", "cheekSquint_R", "mouthPucker", "mouthFunnel", "noseSneer_L"]
@@ -47,6 +48,19 @@ def test_rom_weights_cover_every_shape_and_start_end_neutral():
     for s in seqs:
         cols = s[:, s.max(0) > 0]
         assert np.linalg.matrix_rank(cols, tol=1e-3) == cols.shape[1] or cols.shape[1] > cols.shape[0]
+
+
+def test_mouth_close_is_performed_on_an_open_jaw():
+    names = NAMES + ["mouthClose"]
+    W = np.array([[0.0, 0.3], [0.5, 0.2], [0.1, 0.0]])  # columns jawOpen, mouthClose
+    out = apply_base_shapes(W, ["jawOpen", "mouthClose"])
+    np.testing.assert_array_equal(out, [[0.3, 0.3], [0.5, 0.2], [0.1, 0.0]])
+    np.testing.assert_array_equal(apply_base_shapes(W, ["jawLeft", "mouthClose"]), W)  # no base in the rig
+    j, c = names.index("jawOpen"), names.index("mouthClose")
+    for seqs in (make_rom_weights(names, 4, 11, seed=3, coverage=2), [make_performance_weights(names, 600, 60.0, seed=2)]):
+        for s in seqs:
+            assert np.all(s[:, j] >= s[:, c])
+    assert max(s[:, c].max() for s in make_rom_weights(names, 4, 11, seed=3)) == 1.0
 
 
 def test_head_motion_starts_at_identity_and_respects_bounds():

@@ -86,6 +86,26 @@ def test_track_sequence_levels_and_drift(scene, registered):
     assert full["end_error_mm"] < full["first_error_mm"] + 0.1
 
 
+def test_frame_that_loses_most_dots_is_reported_lost(scene, registered):
+    import cv2
+
+    from rigbuild.track.matches import ViewFrame
+    from rigbuild.track.stage import track_rom_sequence
+
+    template, actor, verts, frames = scene
+    hidden = []
+    for v in frames[1]:  # the dots of the face's left half wiped out (a hand, a failed prediction)
+        img = v.image.copy()
+        half = img.shape[1] // 2
+        img[:, :half] = cv2.medianBlur(img, 21)[:, :half]
+        hidden.append(ViewFrame(v.camera, img, v.depth))
+    _, _, _, stats = track_rom_sequence(template, registered.vertices, frames[0], [frames[0], hidden], [0, 1],
+                                        "rom00", TrackParams(levels=("features",)))
+    assert not stats[0].lost
+    assert stats[1].lost and "painted dots found" in stats[1].reason
+    assert stats[1].dots < 0.6 * stats[0].dots
+
+
 def test_first_frame_not_neutral_is_an_input_error(scene, registered):
     from rigbuild.track.stage import track_rom_sequence
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -22,6 +22,24 @@ def _bump(t: np.ndarray, start: float, peak: float, end: float) -> np.ndarray:
     return np.where(t <= peak, up, down)
 
 
+#: Shapes defined on top of another one (ARKit's ``mouthClose`` closes the lips *against an open jaw*; with the
+#: jaw closed it drives the lips through each other, a pose no actor can hold and no tracker can follow):
+#: wherever such a shape is active its base is at least as active.
+BASE_SHAPES: dict[str, str] = {"mouthClose": "jawOpen"}
+
+
+def apply_base_shapes(weights: np.ndarray, shape_names: Sequence[str],
+                      bases: Mapping[str, str] | None = None) -> np.ndarray:
+    """(F, K) weights with each :data:`BASE_SHAPES` base raised to at least its dependent shape's weight
+    (shapes missing from ``shape_names`` are ignored). Returns a new array."""
+    W = np.array(weights, dtype=np.float64, copy=True)
+    index = {n: i for i, n in enumerate(shape_names)}
+    for shape, base in (BASE_SHAPES if bases is None else bases).items():
+        if shape in index and base in index:
+            W[:, index[base]] = np.maximum(W[:, index[base]], W[:, index[shape]])
+    return W
+
+
 def make_rom_weights(
     shape_names: Sequence[str],
     n_sequences: int,
@@ -39,6 +57,8 @@ def make_rom_weights(
     each of its shapes follows its own eased bump (own onset, peak frame and release), so the poses
     are sparse, varying combinations rather than one shape scaled (which would make shapes that
     share a sequence indistinguishable).
+
+    A shape with a base (:data:`BASE_SHAPES`, e.g. ``mouthClose`` on ``jawOpen``) is performed on it.
 
     Returns a list of ``n_sequences`` arrays (F, K) in [0, 1].
     """
@@ -66,6 +86,7 @@ def make_rom_weights(
             # the extreme is held at a captured frame (an integer frame: sampled bumps reach their peak)
             peak = float(np.round(rng.uniform(start + 0.25 * (end - start), end - 0.25 * (end - start))))
             W[:, k] = np.maximum(W[:, k], rng.uniform(*peak_range) * _bump(t, start, peak, end))
+        W = apply_base_shapes(W, shape_names)
         W[0] = 0.0
         W[-1] = 0.0
         seqs.append(W)
@@ -98,7 +119,7 @@ def make_head_motion(n_frames: int, seed: int = 0, max_rotation_deg: float = 3.0
 
 def make_performance_weights(shape_names: Sequence[str], n_frames: int, fps: float, seed: int = 0,
                              active_fraction: float = 0.8) -> np.ndarray:
-    """Speech-like smooth random weight curves (F, K) in [0, 1].
+    """Speech-like smooth random weight curves (F, K) in [0, 1] (bases of :data:`BASE_SHAPES` follow their shapes).
 
     Mouth and jaw shapes get syllable-rate events (3-6 per second, 0.12-0.4 s long); brows, cheeks
     and nose get slower expression events (0.3 per second, 0.5-2 s); blinks happen every 2-6 s
@@ -140,7 +161,7 @@ def make_performance_weights(shape_names: Sequence[str], n_frames: int, fps: flo
             W[:, blink_idx] += 0.5 * (1 + np.cos(np.pi * x))[:, None]
             c += rng.uniform(2.0, 6.0)
     W = (1 - np.exp(-2 * W)) / (1 - np.exp(-2.0))
-    return np.clip(W, 0.0, 1.0)
+    return apply_base_shapes(np.clip(W, 0.0, 1.0), shape_names)
 
 
 def markers_from_rig(rig: Rig, weights: np.ndarray, R: np.ndarray | None = None, t: np.ndarray | None = None,

@@ -45,7 +45,7 @@ def track_rom_sequence(template: Rig, neutral_vertices: np.ndarray, anchor_frame
     template : the template rig (topology, face region, markers); neutral_vertices (V, 3) mm: the registered
     actor neutral; anchor_frames : the views of the global neutral frame; frames : per frame, its views;
     frame_ids : frame numbers. Returns vertices (F, V, 3) float32 mm (full topology), confidence (F, V)
-    float32, markers (F, M, 3) mm (NaN on lost frames is *not* applied: lost frames are flagged in stats),
+    float32, markers (F, M, 3) mm (lost frames are flagged in stats, not NaN here; scripts/track.py writes them as gaps),
     stats per frame.
     """
     require_markers(template)
