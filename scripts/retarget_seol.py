@@ -54,6 +54,7 @@ PARAMS = {
     "scale_match": "rbf",
     "scale_match_kernel": "r",     # the RBF's phi: r (the paper) | r3 | tps
     "marker_lowpass_hz": None,     # zero-phase low-pass of the take's markers (-3 dB, Hz) before solving
+    "weight_bounds": None,         # [lo, hi]: the spacetime solution kept in the rig's weight range
 }
 
 
@@ -104,7 +105,8 @@ def main(snakemake) -> None:
                         rigid_weights=rw, head_refine_iterations=int(cfg["head_refine_iterations"]), beta=beta,
                         alpha_perframe=float(cfg["alpha_perframe"]), weight_range=tuple(cfg["weight_range"]),
                         scale_match=str(cfg["scale_match"]), scale_match_kernel=str(cfg["scale_match_kernel"]),
-                        marker_lowpass_hz=None if cfg["marker_lowpass_hz"] is None else float(cfg["marker_lowpass_hz"]))
+                        marker_lowpass_hz=None if cfg["marker_lowpass_hz"] is None else float(cfg["marker_lowpass_hz"]),
+                        weight_bounds=None if cfg["weight_bounds"] is None else tuple(cfg["weight_bounds"]))
     seconds = time.perf_counter() - t0
     fps = take.fps
     out = snakemake.output

@@ -45,7 +45,16 @@ def _random_problem(F=24, M=10, K=6, seed=0):
 def _dense_minimizer(B, S, prior, alpha, beta, mask, vals, vis=None):
     """Reference: assemble the quadratic energy over all F*K unknowns densely and solve. ``vis`` (F, M):
     velocity rows of a marker count only when it is seen at both frames, Sobolev rows when seen."""
-    F, K = mask.shape
+    H, g = _dense_energy(B, S, prior, alpha, beta, mask.shape[0], vis)
+    free = ~mask.reshape(-1)
+    x = np.where(mask, vals, 0.0).reshape(-1)
+    x[free] = np.linalg.solve(H[np.ix_(free, free)], g[free] - H[np.ix_(free, ~free)] @ x[~free])
+    return x.reshape(mask.shape)
+
+
+def _dense_energy(B, S, prior, alpha, beta, F, vis=None):
+    """The energy of eq. (4) (+ Sobolev) as ``1/2 x^T H x - g^T x`` over the F*K weights, assembled densely."""
+    K = B.shape[1]
     M = B.shape[0] // 3
     n = F * K
     # E = ||D W B^T - D S||^2 + alpha * sum_t (E^T(Bw_t) - c)^T Lam^-1 (...) + sum_t (Bw_t - s_t)^T beta_t (...)
@@ -73,10 +82,7 @@ def _dense_minimizer(B, S, prior, alpha, beta, mask, vals, vis=None):
             bt = np.repeat(b[t] * vis[t], 3)
             H[t * K:(t + 1) * K, t * K:(t + 1) * K] += B.T @ (bt[:, None] * B)
             g[t * K:(t + 1) * K] += B.T @ (bt * S[t])
-    free = ~mask.reshape(-1)
-    x = np.where(mask, vals, 0.0).reshape(-1)
-    x[free] = np.linalg.solve(H[np.ix_(free, free)], g[free] - H[np.ix_(free, ~free)] @ x[~free])
-    return x.reshape(F, K)
+    return H, g
 
 
 # ----------------------------------------------------------------------------- sec. 3.2 RBF
@@ -379,6 +385,42 @@ def test_velocity_error_definition():
 
 
 # ------------------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize("gaps", [False, True])
+def test_bounded_spacetime_solve_is_the_bounded_qp_minimizer(gaps):
+    import cvxopt
+
+    B, S, prior, P, p = _random_problem(F=16, M=6, K=5, seed=4)
+    S = 0.8 * S
+    F, K = S.shape[0], B.shape[1]
+    vis = None
+    if gaps:
+        vis = np.ones((F, B.shape[0] // 3), bool)
+        vis[5:8, 2] = False
+    alpha, beta = 0.05, np.full(B.shape[0] // 3, 0.3)
+    system = SeolSystem(B, np.where(np.repeat(vis, 3, 1), S, np.nan) if gaps else S, P, p, alpha=alpha, beta=beta,
+                        ridge=0.0, visibility=vis)
+    mask, vals = system.pins_for((0, -1))
+    W, passes = system.solve_bounded(mask, vals, (0.0, 1.0))
+    assert W.min() >= 0.0 and W.max() <= 1.0 and passes >= 2
+    free = ~mask
+    assert np.any(W[free] == 0.0) and np.any((W[free] > 0) & (W[free] < 1))  # some bounds active, some not
+    # reference: the same energy assembled densely, bounded QP by cvxopt (pins as equalities)
+    H, g = _dense_energy(B, S, prior, alpha, beta, F, vis)
+    n = F * K
+    fr = np.flatnonzero(free.reshape(-1))
+    pin = np.flatnonzero(mask.reshape(-1))
+    G = np.vstack([np.eye(n)[fr], -np.eye(n)[fr]])
+    h = np.concatenate([np.ones(fr.size), np.zeros(fr.size)])
+    A = np.eye(n)[pin]
+    cvxopt.solvers.options.update({"show_progress": False, "abstol": 1e-12, "reltol": 1e-12, "feastol": 1e-12})
+    sol = cvxopt.solvers.qp(cvxopt.matrix(H), cvxopt.matrix(-g), cvxopt.matrix(G), cvxopt.matrix(h),
+                            cvxopt.matrix(A), cvxopt.matrix(vals.reshape(-1)[pin]))
+    ref = np.array(sol["x"]).reshape(F, K)
+    np.testing.assert_allclose(W, ref, atol=1e-5)
+    # the gradient the active set reads is the energy's: H w - g
+    np.testing.assert_allclose(system.gradient(W).reshape(-1), H @ W.reshape(-1) - g, atol=1e-8)
+
+
 def test_bad_input_messages():
     B, S, prior, P, p = _random_problem()
     system = SeolSystem(B, S, P, p, shape_names=[f"s{k}" for k in range(B.shape[1])])
@@ -388,6 +430,8 @@ def test_bad_input_messages():
         system.solve_spacetime((0, -1), {5: {"jawOpenn": 1.0}})
     with pytest.raises(InputError, match="contain NaN"):
         SeolSystem(B, np.full_like(S, np.nan), P, p)
+    with pytest.raises(InputError, match=r"weight bounds \[1.0, 0.0\] are not an interval"):
+        system.solve_bounded(*system.pins_for(), (1.0, 0.0))
 
 
 # ------------------------------------------------------------------------- stage: synthetic truth
