@@ -499,6 +499,14 @@ def test_training_set_neutral_is_the_mean_of_the_neutral_frames():
     assert np.abs(both.neutral - rig.markers()).mean() < np.abs(one.neutral - rig.markers()).mean()
     with pytest.raises(InputError, match="outside training sequence 1"):
         make_training_set([s1, s2], [names, names], [0, 9])
+    # frames tracking lost (all NaN) or with < 4 markers are left out; the sequence starts follow
+    s1g = s1.copy()
+    s1g[2] = np.nan
+    s1g[3, 3:] = np.nan
+    lost = make_training_set([s1g, s2], [names, names], [1, 2])
+    assert lost.markers.shape[0] == 5 and np.all(np.isfinite(lost.markers))
+    np.testing.assert_array_equal(lost.segment_starts, [0, 2])
+    np.testing.assert_allclose(lost.neutral, both.neutral, atol=1e-12)
 
 
 def _grid_rom(rig, scale, n_frames=40, seed=11):

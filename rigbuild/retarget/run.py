@@ -6,6 +6,8 @@ and the benchmark. I/O stays in the script; this module takes arrays and rigs.
 
 from __future__ import annotations
 
+import logging
+
 import os
 import time
 from dataclasses import dataclass, field
@@ -38,6 +40,10 @@ class TrainingSet:
     neutral: np.ndarray
 
 
+#: a training frame needs this many visible markers (a rigid fit and some expression); fewer: left out
+MIN_TRAINING_MARKERS = 4
+
+
 def make_training_set(
     sequences: Sequence[np.ndarray],
     names: Sequence[Sequence[str]],
@@ -50,7 +56,8 @@ def make_training_set(
     shorter list covers the first sequences). The actor's neutral ``a0`` is the rigidly aligned mean of these
     frames (:func:`~rigbuild.retarget.common.average_neutral`): each neutral frame's marker noise would
     otherwise become a constant offset of every displacement. Every marker must be visible in at least one
-    of them.
+    of them. Frames with fewer than :data:`MIN_TRAINING_MARKERS` visible markers (tracking lost, written as
+    gaps) are left out with a warning.
     """
     if not sequences:
         raise InputError("no training sequence given", fix="list the actor's ROM marker files")
@@ -74,8 +81,15 @@ def make_training_set(
                          path=None if sources is None else sources[0],
                          fix="choose neutral frames where every marker is visible (in at least one of them)")
     a0 = average_neutral(picked)
-    starts = np.cumsum([0] + [m.shape[0] for m in mats[:-1]]).astype(np.int64)
-    return TrainingSet(np.concatenate(mats), order, starts, a0)
+    # frames tracking lost (written as gaps) or with too few markers for a rigid fit carry no expression
+    kept = [m[np.isfinite(m).all(axis=2).sum(axis=1) >= MIN_TRAINING_MARKERS] for m in mats]
+    dropped = sum(m.shape[0] for m in mats) - sum(k.shape[0] for k in kept)
+    if dropped:
+        logging.getLogger("rigbuild.retarget").warning(
+            "training: %d frame(s) with fewer than %d visible markers left out", dropped, MIN_TRAINING_MARKERS)
+    kept = [k for k in kept if k.shape[0]]
+    starts = np.cumsum([0] + [m.shape[0] for m in kept[:-1]]).astype(np.int64)
+    return TrainingSet(np.concatenate(kept), order, starts, a0)
 
 
 @dataclass
