@@ -153,7 +153,7 @@ def lowpass_sigma_frames(fps: float, cutoff_hz: float) -> float:
     return float(np.sqrt(np.log(2.0)) / (2.0 * np.pi * cutoff_hz) * fps)
 
 
-def lowpass_markers(markers: np.ndarray, fps: float, cutoff_hz: float) -> np.ndarray:
+def lowpass_markers(markers: np.ndarray, fps: float | None, cutoff_hz: float) -> np.ndarray:
     """Zero-phase Gaussian low-pass of marker trajectories, as mocap pipelines filter before solving.
 
     markers : (F, M, 3) mm, NaN gaps; fps : frames per second; cutoff_hz : -3 dB frequency
@@ -168,6 +168,8 @@ def lowpass_markers(markers: np.ndarray, fps: float, cutoff_hz: float) -> np.nda
     X = np.asarray(markers, dtype=np.float64)
     if X.ndim != 3 or X.shape[2] != 3:
         raise InputError(f"markers must be (frames, markers, 3), got {X.shape}")
+    if fps is None:
+        raise InputError("marker_lowpass_hz needs the performance's fps", fix="pass fps=")
     sigma = lowpass_sigma_frames(fps, cutoff_hz)
     seen = np.isfinite(X).all(axis=2, keepdims=True)
     num = gaussian_filter1d(np.where(seen, X, 0.0), sigma, axis=0, mode="nearest", truncate=4.0)

@@ -144,8 +144,6 @@ def retarget_performance(
                           if map_names[a] in pos and map_names[b] in pos], dtype=np.int64).reshape(-1, 2)
     perf = reorder_markers(performance, performance_names, training.names, what="performance", path=performance_path)
     if marker_lowpass_hz is not None:
-        if fps is None:
-            raise InputError("marker_lowpass_hz needs the performance's fps", fix="pass fps=")
         perf = lowpass_markers(perf, fps, marker_lowpass_hz)
     ok = check_frames(perf, what="performance", path=performance_path, allow_empty=allow_empty_frames)
     check_frames(training.markers, what="training sequence", allow_empty=True)

@@ -988,8 +988,6 @@ def retarget_seol(
     if F < 2:
         raise InputError(f"the performance has {F} frame(s); spacetime retargeting needs at least 2")
     if marker_lowpass_hz is not None:
-        if fps is None:
-            raise InputError("marker_lowpass_hz needs the performance's fps", fix="pass fps=")
         X = lowpass_markers(X, fps, marker_lowpass_hz)
     n_tgt, d_tgt = target_marker_blendshapes(target, marker_names)
     if n_tgt.shape[0] != M:
