@@ -9,7 +9,8 @@ from rigbuild.errors import InputError
 from rigbuild.io.markers import read_markers, write_markers_c3d, write_markers_npz
 from rigbuild.rig import Rig
 from rigbuild.synth.actor import make_actor_rig
-from rigbuild.synth.motion import (apply_base_shapes, make_head_motion, make_performance_weights, make_rom_weights,
+from rigbuild.synth.motion import (antagonist_overlap, apply_base_shapes, is_lower_face, make_head_motion,
+                                   make_performance_weights, make_rom_weights,
                                    markers_from_rig)
 
 NAMES = ["jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L",
@@ -133,3 +134,38 @@ def test_marker_c3d_roundtrip(tmp_path):
     (tmp_path / "trunc.c3d").write_bytes((tmp_path / "p.c3d").read_bytes()[:300])
     with pytest.raises(InputError, match="trunc.c3d"):
         read_markers(tmp_path / "trunc.c3d")
+
+
+ARKIT = ["browDown_L", "browDown_R", "browInnerUp_L", "browInnerUp_R", "eyeBlink_L", "eyeBlink_R", "eyeWide_L",
+         "eyeWide_R", "jawOpen", "jawLeft", "jawRight", "mouthClose", "mouthFunnel", "mouthPress_L", "mouthPress_R",
+         "mouthLeft", "mouthRight", "mouthSmile_L", "mouthSmile_R", "mouthFrown_L", "mouthFrown_R", "mouthPucker",
+         "mouthStretch_L", "mouthStretch_R", "mouthRollLower", "mouthRollUpper", "cheekPuff_L", "noseSneer_L"]
+
+
+def test_antagonist_overlap_is_the_largest_joint_weight():
+    names = ["mouthLeft", "mouthRight", "jawOpen"]
+    W = np.array([[0.0, 0.0, 1.0], [0.7, 0.2, 1.0], [0.3, 0.4, 0.0]])
+    assert antagonist_overlap(W, names) == pytest.approx(0.3)
+    assert antagonist_overlap(W[:, [0, 2]], ["mouthLeft", "jawOpen"]) == 0.0
+    assert is_lower_face("jawOpen") and is_lower_face("cheekPuff_L") and not is_lower_face("eyeBlink_L")
+
+
+def test_rom_performs_lower_face_shapes_in_turn_without_antagonists():
+    lower = [i for i, n in enumerate(ARKIT) if is_lower_face(n)]
+    base = {ARKIT.index("jawOpen")}
+    for seed in range(4):
+        seqs = make_rom_weights(ARKIT, 6, 15, seed=seed, coverage=2, lower_face_lanes=2)
+        W = np.stack(seqs)
+        assert np.all(W.max(axis=(0, 1)) == 1.0)  # still every shape at full intensity
+        for s in seqs:
+            assert antagonist_overlap(s, ARKIT) <= 0.25  # (best of the redraws: lanes cross-fade)
+            # at most two lanes near their extremes at once (jawOpen may also carry mouthClose)
+            near = s[:, lower] > 0.5
+            near_wo_base = near[:, [j for j, i in enumerate(lower) if i not in base]]
+            assert near_wo_base.sum(1).max() <= 2
+        one = make_rom_weights(ARKIT, 6, 15, seed=seed, lower_face_lanes=1)
+        for s in one:
+            lower_wo = [i for i in lower if i not in base]
+            assert (s[:, lower_wo] > 0.5).sum(1).max() <= 1
+    with pytest.raises(ValueError, match="lower_face_lanes"):
+        make_rom_weights(ARKIT, 2, 15, lower_face_lanes=0)

@@ -40,6 +40,80 @@ def apply_base_shapes(weights: np.ndarray, shape_names: Sequence[str],
     return W
 
 
+#: Lower-face shapes (jaw, lips, cheek puff): a ROM performs them a few at a time, one after another.
+LOWER_FACE_PREFIXES: tuple[str, ...] = ("jaw", "mouth", "cheekPuff", "tongue")
+
+#: Shape pairs that pull the same tissue opposite ways (or put the lips through each other): a ROM never holds
+#: both at once.
+ANTAGONISTS: frozenset[frozenset[str]] = frozenset(frozenset(p) for p in [
+    ("mouthLeft", "mouthRight"), ("jawLeft", "jawRight"),
+    ("mouthSmile_L", "mouthFrown_L"), ("mouthSmile_R", "mouthFrown_R"),
+    ("mouthPucker", "mouthStretch_L"), ("mouthPucker", "mouthStretch_R"),
+    ("mouthPucker", "mouthSmile_L"), ("mouthPucker", "mouthSmile_R"),
+    ("mouthFunnel", "mouthPress_L"), ("mouthFunnel", "mouthPress_R"),
+    ("mouthFunnel", "mouthRollLower"), ("mouthFunnel", "mouthRollUpper"),
+    ("mouthPucker", "mouthRollLower"), ("mouthPucker", "mouthRollUpper"),
+    ("mouthClose", "mouthFunnel"), ("mouthClose", "mouthLowerDown_L"), ("mouthClose", "mouthLowerDown_R"),
+    ("mouthClose", "mouthUpperUp_L"), ("mouthClose", "mouthUpperUp_R"),
+    ("mouthRollLower", "mouthShrugLower"), ("mouthRollUpper", "mouthShrugUpper"),
+    ("mouthRollLower", "mouthLowerDown_L"), ("mouthRollLower", "mouthLowerDown_R"),
+    ("mouthRollUpper", "mouthUpperUp_L"), ("mouthRollUpper", "mouthUpperUp_R"),
+    ("mouthPress_L", "mouthLowerDown_L"), ("mouthPress_R", "mouthLowerDown_R"),
+    ("eyeBlink_L", "eyeWide_L"), ("eyeBlink_R", "eyeWide_R"), ("eyeSquint_L", "eyeWide_L"),
+    ("eyeSquint_R", "eyeWide_R"), ("eyeLookUp_L", "eyeLookDown_L"), ("eyeLookUp_R", "eyeLookDown_R"),
+    ("eyeLookIn_L", "eyeLookOut_L"), ("eyeLookIn_R", "eyeLookOut_R"),
+    ("browDown_L", "browInnerUp_L"), ("browDown_R", "browInnerUp_R"),
+    ("browDown_L", "browOuterUp_L"), ("browDown_R", "browOuterUp_R"),
+])
+
+
+def is_lower_face(name: str) -> bool:
+    """True for jaw, lip and cheek-puff shapes (:data:`LOWER_FACE_PREFIXES`)."""
+    return name.startswith(LOWER_FACE_PREFIXES)
+
+
+def antagonist_overlap(weights: np.ndarray, shape_names: Sequence[str]) -> float:
+    """Largest weight two :data:`ANTAGONISTS` reach together in one frame: max over frames and pairs of
+    ``min(w_a, w_b)`` (0 when no pair is active together). ``weights`` (F, K)."""
+    index = {n: i for i, n in enumerate(shape_names)}
+    worst = 0.0
+    for pair in ANTAGONISTS:
+        a, b = sorted(pair)
+        if a in index and b in index:
+            worst = max(worst, float(np.minimum(weights[:, index[a]], weights[:, index[b]]).max(initial=0.0)))
+    return worst
+
+
+def _conflicts(k: int, group: Sequence[int], shape_names: Sequence[str]) -> bool:
+    """Whether shape ``k`` may not join ``group``: already there, or an upper-face antagonist is."""
+    if k in group:
+        return True
+    if is_lower_face(shape_names[k]):
+        return False
+    return any(frozenset((shape_names[k], shape_names[j])) in ANTAGONISTS for j in group)
+
+
+def _lane_bumps(lanes: list[list[int]], F: int, K: int, amplitude: np.ndarray,
+                rng: np.random.Generator) -> np.ndarray:
+    """(F, K) weights for shapes performed in turn. Lane ``i`` of ``n`` performs its shapes one after another
+    in equal windows, staggered by ``i / n`` of a window against lane 0 (so two lanes never peak together);
+    each bump overlaps its neighbours' by a third of a window, with jittered onset and release, and peaks
+    at an integer frame."""
+    last = F - 1
+    t = np.arange(F, dtype=np.float64)
+    W = np.zeros((F, K))
+    n = len(lanes)
+    for i, lane in enumerate(lanes):
+        length = last / (len(lane) + (n - 1) / n)
+        for j, k in enumerate(lane):
+            centre = (j + 0.5 + i / n) * length
+            peak = float(np.clip(np.round(centre), 1, last - 1))
+            start = max(centre - (0.5 + 1 / 3 + rng.uniform(-0.15, 0.15)) * length, 0.0)
+            end = min(centre + (0.5 + 1 / 3 + rng.uniform(-0.15, 0.15)) * length, float(last))
+            W[:, k] = np.maximum(W[:, k], amplitude[k] * _bump(t, min(start, peak - 1), peak, max(end, peak + 1)))
+    return W
+
+
 def make_rom_weights(
     shape_names: Sequence[str],
     n_sequences: int,
@@ -47,18 +121,25 @@ def make_rom_weights(
     seed: int = 0,
     coverage: int = 2,
     peak_range: tuple[float, float] = (1.0, 1.0),
+    lower_face_lanes: int = 2,
+    antagonist_limit: float = 0.1,
 ) -> list[np.ndarray]:
     """Range-of-motion weight sequences.
 
     Every sequence starts and ends at neutral (all weights 0). A ROM is performed at full intensity: by
     default every shape's bump peaks at weight 1 (the actor's extreme of that expression); ``peak_range``
     draws the peaks uniformly from a range instead. Shapes are dealt to sequences so that
-    each shape peaks in ``coverage`` different sequences with different partners; inside a sequence
-    each of its shapes follows its own eased bump (own onset, peak frame and release), so the poses
-    are sparse, varying combinations rather than one shape scaled (which would make shapes that
-    share a sequence indistinguishable).
+    each shape peaks in ``coverage`` different sequences with different partners.
 
-    A shape with a base (:data:`BASE_SHAPES`, e.g. ``mouthClose`` on ``jawOpen``) is performed on it.
+    Inside a sequence the upper-face shapes (brows, eyes, cheeks, nose) each follow their own eased bump
+    (own onset, peak frame and release), so the poses are sparse, varying combinations rather than one
+    shape scaled (which would make shapes that share a sequence indistinguishable). The lower-face shapes
+    (:func:`is_lower_face`) are performed in turn, as an actor does a ROM: they are dealt to
+    ``lower_face_lanes`` lanes, and each lane performs its shapes one after another, so at most that many
+    are near their extremes at once (stacking five full-intensity mouth shapes drives the lips through each
+    other: no actor holds it, no stereo sees it). Timings are redrawn until no :data:`ANTAGONISTS` pair
+    exceeds ``antagonist_limit`` together. A shape with a base (:data:`BASE_SHAPES`, e.g. ``mouthClose``
+    on ``jawOpen``) is performed on it.
 
     Returns a list of ``n_sequences`` arrays (F, K) in [0, 1].
     """
@@ -67,29 +148,50 @@ def make_rom_weights(
     F = int(frames_per_sequence)
     if F < 5:
         raise ValueError("a ROM sequence needs at least 5 frames (neutral, ease in, peak, ease out, neutral)")
+    if lower_face_lanes < 1:
+        raise ValueError("lower_face_lanes must be at least 1")
     groups: list[list[int]] = [[] for _ in range(n_sequences)]
     for rep in range(coverage):
         order = rng.permutation(K)
         for i, k in enumerate(order):
             s = (i + rep * 7) % n_sequences
-            if k in groups[s]:
-                s = (s + 1) % n_sequences
+            # a sequence holds a shape once; upper-face antagonists (bumps that span the sequence) go apart
+            for step in range(n_sequences):
+                if not _conflicts(int(k), groups[(s + step) % n_sequences], shape_names):
+                    s = (s + step) % n_sequences
+                    break
+            else:
+                s = (s + 1) % n_sequences if k in groups[s] else s
             groups[s].append(int(k))
     t = np.arange(F, dtype=np.float64)
     last = F - 1
     seqs = []
     for g in groups:
-        W = np.zeros((F, K))
-        for k in g:
-            start = rng.uniform(0.0, 0.25) * last
-            end = last - rng.uniform(0.0, 0.25) * last
-            # the extreme is held at a captured frame (an integer frame: sampled bumps reach their peak)
-            peak = float(np.round(rng.uniform(start + 0.25 * (end - start), end - 0.25 * (end - start))))
-            W[:, k] = np.maximum(W[:, k], rng.uniform(*peak_range) * _bump(t, start, peak, end))
-        W = apply_base_shapes(W, shape_names)
-        W[0] = 0.0
-        W[-1] = 0.0
-        seqs.append(W)
+        amplitude = rng.uniform(*peak_range, size=K)
+        lower = [k for k in g if is_lower_face(shape_names[k])]
+        upper = [k for k in g if k not in lower]
+        best, best_overlap = None, np.inf
+        for _attempt in range(200):
+            W = np.zeros((F, K))
+            for k in upper:
+                start = rng.uniform(0.0, 0.25) * last
+                end = last - rng.uniform(0.0, 0.25) * last
+                # the extreme is held at a captured frame (an integer frame: sampled bumps reach their peak)
+                peak = float(np.round(rng.uniform(start + 0.25 * (end - start), end - 0.25 * (end - start))))
+                W[:, k] = np.maximum(W[:, k], amplitude[k] * _bump(t, start, peak, end))
+            order = [lower[i] for i in rng.permutation(len(lower))]
+            n_lanes = min(lower_face_lanes, len(order))
+            if n_lanes:
+                W += _lane_bumps([order[i::n_lanes] for i in range(n_lanes)], F, K, amplitude, rng)
+            W = apply_base_shapes(W, shape_names)
+            W[0] = 0.0
+            W[-1] = 0.0
+            overlap = antagonist_overlap(W, shape_names)
+            if overlap < best_overlap:
+                best, best_overlap = W, overlap
+            if overlap <= antagonist_limit:
+                break
+        seqs.append(best)
     return seqs
 
 
