@@ -155,6 +155,11 @@ def _configs(K, M, fps):
         # the proposed config: config_yaml + scale_match deformation + sobolev_corner_hz 1.0
         "proposed_config": dict(prior_corner_hz=0.03, fps=fps, prior_training=combos, boundary_values="perframe",
                                 scale_match="deformation", beta=sobolev),
+        # exactly config/config.yaml and config/ict.yaml params.retarget.seol now: + the 5 Hz marker low-pass,
+        # weights in [0, 1] (Range-PF baseline too) and the L1 term (Prior-PF baseline with the same constraints)
+        "configs_now": dict(prior_corner_hz=0.03, fps=fps, prior_training=combos, boundary_values="perframe",
+                            scale_match="deformation", beta=sobolev, marker_lowpass_hz=5.0, weight_bounds=(0.0, 1.0),
+                            weight_range=(0.0, 1.0), sparsity=0.04),
     }
 
 
@@ -185,7 +190,7 @@ def accuracy(n_frames=600, fps=60.0):
             m["alpha"] = res.alpha
             m["corner_hz"] = corner_hz_from_alpha(res.alpha, res.system.B, res.system.prior_P, fps)
             m["seconds_with_baselines"] = time.perf_counter() - t0
-            if name in ("recommended", "recommended_deformation", "proposed_config"):
+            if name in ("recommended", "recommended_deformation", "proposed_config", "configs_now"):
                 r = per_shape_correlation(res.weights, case["weights"])
                 names = template.shape_names
                 worst = [k for k in np.argsort(np.where(shapes, r, 9.0)) if shapes[k]][:8]

@@ -15,6 +15,7 @@ import time
 import numpy as np
 
 from rigbuild.errors import InputError
+from rigbuild.eval.seol import flat_metric_keys
 from rigbuild.io.atomic import write_json
 from rigbuild.io.markers import read_markers
 from rigbuild.io.metrics import merge_metrics
@@ -55,6 +56,7 @@ PARAMS = {
     "scale_match_kernel": "r",     # the RBF's phi: r (the paper) | r3 | tps
     "marker_lowpass_hz": None,     # zero-phase low-pass of the take's markers (-3 dB, Hz) before solving
     "weight_bounds": None,         # [lo, hi]: the spacetime solution kept in the rig's weight range
+    "sparsity": 0.0,               # L1 weight (mm^2 per unit weight); needs weight_bounds from 0
 }
 
 
@@ -106,7 +108,8 @@ def main(snakemake) -> None:
                         alpha_perframe=float(cfg["alpha_perframe"]), weight_range=tuple(cfg["weight_range"]),
                         scale_match=str(cfg["scale_match"]), scale_match_kernel=str(cfg["scale_match_kernel"]),
                         marker_lowpass_hz=None if cfg["marker_lowpass_hz"] is None else float(cfg["marker_lowpass_hz"]),
-                        weight_bounds=None if cfg["weight_bounds"] is None else tuple(cfg["weight_bounds"]))
+                        weight_bounds=None if cfg["weight_bounds"] is None else tuple(cfg["weight_bounds"]),
+                        sparsity=float(cfg["sparsity"] or 0.0))
     seconds = time.perf_counter() - t0
     fps = take.fps
     out = snakemake.output
@@ -128,13 +131,8 @@ def main(snakemake) -> None:
                               "weight_max": float(W.max())}
     write_json(out.metrics, {"character": char, "performance": snakemake.params.performance, "params": cfg,
                              **values, "methods": per_method})
-    keys = {"seol": "seol", "perframe_prior": "perframe_prior", "perframe_range": "perframe_range",
-            "no_constraint": "noconst"}
     flat = {f"seol.{char}.{k}": v for k, v in values.items()}
-    for method, vals in per_method.items():
-        prefix = keys.get("seol" if method == "spacetime" else method, method)
-        for k, v in vals.items():
-            flat[f"{prefix}.{char}.{k}"] = v
+    flat.update(flat_metric_keys(per_method, char))
     merge_metrics(snakemake.params.metrics_path, "retarget", flat)
     log.info("seol %s -> %s: %d frames in %.2f s, velocity error %.1f (Range PF %.1f, Prior PF %.1f)",
              snakemake.params.performance, char, X.shape[0], seconds, per_method["spacetime"]["velocity_error"],

@@ -3,12 +3,14 @@ a synthetic actor with ground-truth weights (procedural head; the ICT numbers ar
 
 from __future__ import annotations
 
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from rigbuild.errors import InputError
+from rigbuild.retarget.editing import edit_spacetime
 from rigbuild.retarget.seol import (
     SeolSystem,
     alpha_from_corner_hz,
@@ -385,8 +387,8 @@ def test_velocity_error_definition():
 
 
 # ------------------------------------------------------------------------------------- bad input
-@pytest.mark.parametrize("gaps", [False, True])
-def test_bounded_spacetime_solve_is_the_bounded_qp_minimizer(gaps):
+@pytest.mark.parametrize("gaps,sparsity", [(False, 0.0), (True, 0.0), (False, 0.3), (True, 0.3)])
+def test_bounded_spacetime_solve_is_the_bounded_qp_minimizer(gaps, sparsity):
     import cvxopt
 
     B, S, prior, P, p = _random_problem(F=16, M=6, K=5, seed=4)
@@ -398,9 +400,9 @@ def test_bounded_spacetime_solve_is_the_bounded_qp_minimizer(gaps):
         vis[5:8, 2] = False
     alpha, beta = 0.05, np.full(B.shape[0] // 3, 0.3)
     system = SeolSystem(B, np.where(np.repeat(vis, 3, 1), S, np.nan) if gaps else S, P, p, alpha=alpha, beta=beta,
-                        ridge=0.0, visibility=vis)
+                        ridge=0.0, visibility=vis, bounds=(0.0, 1.0), sparsity=sparsity)
     mask, vals = system.pins_for((0, -1))
-    W, passes = system.solve_bounded(mask, vals, (0.0, 1.0))
+    W, passes = system.solve_bounded(mask, vals)
     assert W.min() >= 0.0 and W.max() <= 1.0 and passes >= 2
     free = ~mask
     assert np.any(W[free] == 0.0) and np.any((W[free] > 0) & (W[free] < 1))  # some bounds active, some not
@@ -413,12 +415,60 @@ def test_bounded_spacetime_solve_is_the_bounded_qp_minimizer(gaps):
     h = np.concatenate([np.ones(fr.size), np.zeros(fr.size)])
     A = np.eye(n)[pin]
     cvxopt.solvers.options.update({"show_progress": False, "abstol": 1e-12, "reltol": 1e-12, "feastol": 1e-12})
-    sol = cvxopt.solvers.qp(cvxopt.matrix(H), cvxopt.matrix(-g), cvxopt.matrix(G), cvxopt.matrix(h),
+    # (the energy in H, g is half of eq. (4); the L1 term sparsity * 1^T w enters as sparsity / 2)
+    sol = cvxopt.solvers.qp(cvxopt.matrix(H), cvxopt.matrix(-g + 0.5 * sparsity), cvxopt.matrix(G), cvxopt.matrix(h),
                             cvxopt.matrix(A), cvxopt.matrix(vals.reshape(-1)[pin]))
     ref = np.array(sol["x"]).reshape(F, K)
     np.testing.assert_allclose(W, ref, atol=1e-5)
     # the gradient the active set reads is the energy's: H w - g
-    np.testing.assert_allclose(system.gradient(W).reshape(-1), H @ W.reshape(-1) - g, atol=1e-8)
+    np.testing.assert_allclose(system.gradient(W).reshape(-1), H @ W.reshape(-1) - g + 0.5 * sparsity, atol=1e-8)
+    if sparsity:  # the L1 term lowers the total weight
+        plain = replace(system, sparsity=0.0, visibility=vis).solve_bounded(mask, vals)[0]
+        assert W.sum() < plain.sum() - 1e-3
+
+
+def test_bounded_sparse_perframe_prior_is_the_per_frame_qp_minimizer():
+    import cvxopt
+
+    B, S, prior, P, p = _random_problem(F=6, M=6, K=5, seed=7)
+    alpha, lam = 0.5, 0.2
+    W = solve_perframe_prior(B, S, P, p, alpha, bounds=(0.0, 1.0), sparsity=lam)
+    assert W.min() >= 0 and W.max() <= 1 and np.any(W == 0)
+    K = B.shape[1]
+    cvxopt.solvers.options.update({"show_progress": False, "abstol": 1e-12, "reltol": 1e-12, "feastol": 1e-12})
+    for t in range(S.shape[0]):
+        # ||B w - s||^2 + alpha (w^T P w - 2 p^T w) + lam 1^T w  ->  1/2 w^T (2 H) w + q^T w
+        H = 2 * (B.T @ B + alpha * P)
+        q = -2 * (B.T @ S[t] + alpha * p) + lam
+        sol = cvxopt.solvers.qp(cvxopt.matrix(H), cvxopt.matrix(q), cvxopt.matrix(np.vstack([np.eye(K), -np.eye(K)])),
+                                cvxopt.matrix(np.r_[np.ones(K), np.zeros(K)]))
+        np.testing.assert_allclose(W[t], np.array(sol["x"]).ravel(), atol=1e-6)
+    with pytest.raises(InputError, match="needs bounds"):
+        solve_perframe_prior(B, S, P, p, alpha, sparsity=lam)
+
+
+def test_edit_of_a_bounded_sparse_solution_stays_in_its_range(tmp_path):
+    B, S, prior, P, p = _random_problem(F=30, M=6, K=5, seed=2)
+    names = [f"s{k}" for k in range(B.shape[1])]
+    system = SeolSystem(B, S, P, p, alpha=0.05, beta=np.full(6, 0.2), shape_names=names, bounds=(0.0, 1.0),
+                        sparsity=0.1)
+    system.save(tmp_path / "system.npz")
+    loaded = SeolSystem.load(tmp_path / "system.npz")
+    assert loaded.bounds == (0.0, 1.0) and loaded.sparsity == 0.1
+    W = loaded.solve_bounded(*loaded.pins_for((0, -1)))[0]
+    new = edit_spacetime(W, 15, {"s1": 0.9}, (8, 22), system=loaded)
+    assert new[15, 1] == 0.9
+    np.testing.assert_array_equal(new[:8], W[:8])
+    np.testing.assert_array_equal(new[23:], W[23:])
+    assert new.min() >= 0.0 and new.max() <= 1.0
+    # the range is the bounded minimizer under its pins: zero gradient where a weight is free and inside
+    g = loaded.gradient(new[8:23], 8, 23)
+    free = np.ones_like(g, bool)
+    free[[0, -1]] = False
+    free[15 - 8, 1] = False
+    inside = free & (new[8:23] > 1e-9) & (new[8:23] < 1 - 1e-9)
+    assert inside.sum() > 10 and np.abs(g[inside]).max() < 1e-6
+    assert np.all(g[free & (new[8:23] <= 1e-9)] >= -1e-6)
 
 
 def test_bad_input_messages():
@@ -432,6 +482,12 @@ def test_bad_input_messages():
         SeolSystem(B, np.full_like(S, np.nan), P, p)
     with pytest.raises(InputError, match=r"weight bounds \[1.0, 0.0\] are not an interval"):
         system.solve_bounded(*system.pins_for(), (1.0, 0.0))
+    with pytest.raises(InputError, match="needs bounds"):
+        system.solve_bounded(*system.pins_for())
+    with pytest.raises(InputError, match="sparsity .* needs weights bounded below by 0"):
+        SeolSystem(B, S, P, p, sparsity=0.1)
+    with pytest.raises(InputError, match="needs weights bounded below by 0"):
+        SeolSystem(B, S, P, p, sparsity=0.1, bounds=(-0.5, 1.5))
 
 
 # ------------------------------------------------------------------------- stage: synthetic truth

@@ -23,6 +23,7 @@ METHOD_KEYS = {
     "no_constraint": "noconst",
     "perframe_range": "perframe_range",
     "perframe_prior": "perframe_prior",
+    "spacetime_paper": "seol_paper",
 }
 
 

@@ -137,5 +137,8 @@ def edit_spacetime(
     mask[e - a] |= emask
     vals[e - a] = np.where(emask, evals, vals[e - a])
     out = W.copy()
-    out[a:b + 1] = system.solve(mask, vals, start=a, stop=b + 1)
+    if system.bounds is None:
+        out[a:b + 1] = system.solve(mask, vals, start=a, stop=b + 1)
+    else:  # a bounded (and possibly sparse) solution: the re-solved range stays in the weight range
+        out[a:b + 1] = system.solve_bounded(mask, vals, start=a, stop=b + 1)[0]
     return out

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import os
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -437,6 +437,11 @@ class SeolSystem:
         between frames t-1 and t counts only when m is seen in both, a Sobolev term only when m is
         seen at t (entries of ``S`` at gaps are ignored and may be NaN). The system then has
         time-varying blocks ``G_t = B_vis(t)^T B_vis(t)`` (still block tridiagonal, O(frames)).
+    bounds : None (the paper: unconstrained) or (lo, hi), the weight range the solution is kept in
+        (:meth:`solve_bounded`); edits of a bounded solution stay in it.
+    sparsity : lambda >= 0 of an L1 term ``lambda sum_t ||w_t||_1`` added to eq. (4) (mm^2 per unit
+        weight; not in the paper, Ribera et al. 2017's E_Sparse). On weights >= 0 it is the linear term
+        ``lambda 1^T w``, so it needs ``bounds`` with a non-negative low end.
     """
 
     B: np.ndarray
@@ -449,9 +454,23 @@ class SeolSystem:
     shape_names: list[str] = field(default_factory=list)
     marker_names: list[str] = field(default_factory=list)
     visibility: np.ndarray | None = None
+    bounds: tuple[float, float] | None = None
+    sparsity: float = 0.0
 
     def __post_init__(self) -> None:
         self.B = np.asarray(self.B, dtype=np.float64)
+        if self.bounds is not None:
+            lo, hi = (float(v) for v in self.bounds)
+            if not lo < hi:
+                raise InputError(f"weight bounds {list(self.bounds)} are not an interval", path="config",
+                                 fix="give [low, high] with low < high, e.g. [0, 1]")
+            self.bounds = (lo, hi)
+        self.sparsity = float(self.sparsity)
+        if not (np.isfinite(self.sparsity) and self.sparsity >= 0):
+            raise InputError(f"sparsity must be a finite number >= 0, got {self.sparsity}", path="config")
+        if self.sparsity > 0 and (self.bounds is None or self.bounds[0] < 0):
+            raise InputError("the sparsity (L1) term needs weights bounded below by 0", path="config",
+                             fix="set weight_bounds: [0, 1] with sparsity, or sparsity: 0")
         self.S = np.asarray(self.S, dtype=np.float64)
         if self.B.ndim != 2 or self.S.ndim != 2 or self.S.shape[1] != self.B.shape[0]:
             raise InputError(f"SeolSystem: B {self.B.shape} and S {self.S.shape} do not match (need (3M,K), (F,3M))")
@@ -546,7 +565,7 @@ class SeolSystem:
             dSB = np.diff(SB, axis=0)  # B^T v_t for t = 1..n-1
             rv[1:] += dSB
             rv[:-1] -= dSB
-        rhs = rv + rpos
+        rhs = rv + rpos - 0.5 * self.sparsity  # (the L1 term on weights >= 0 is linear)
         full = mask.all(axis=1)
         none = ~mask.any(axis=1)
         W = vals.copy()
@@ -572,7 +591,8 @@ class SeolSystem:
         return _solve_pinned_block_tridiagonal(*self._quadratic(start, stop), mask, vals)
 
     def _quadratic(self, start: int = 0, stop: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Eq. (4) over frames ``start..stop-1`` as ``E = 1/2 w^T H w - r^T w + const``: H block tridiagonal with
+        """Eq. (4) over frames ``start..stop-1`` as ``E = 1/2 w^T H w - r^T w + const`` (half of eq. (4), with
+        the sparsity term's ``lambda / 2`` in r): H block tridiagonal with
         diagonal blocks A (n, K, K) and upper blocks U (n-1, K, K) (``H[t, t+1] = U[t]``), r (n, K)."""
         stop = self.n_frames if stop is None else stop
         n, K = stop - start, self.n_shapes
@@ -587,7 +607,7 @@ class SeolSystem:
                 rv[:-1] -= dSB
                 A[1:] += Gp
                 A[:-1] += Gp
-            return A, -Gp, rv + rpos
+            return A, -Gp, rv + rpos - 0.5 * self.sparsity
         # movement rhs: (L SB)_t = B^T (v_t - v_{t+1}) with v_t = s_t - s_{t-1} inside the window
         if n > 1:
             dSB = np.diff(self._SB[start:stop], axis=0)
@@ -598,11 +618,12 @@ class SeolSystem:
         deg[0] -= 1.0
         deg[-1] -= 1.0
         A = deg[:, None, None] * G[None] + (Pc[None] if constant else Pc)
-        return A, np.broadcast_to(-G, (max(n - 1, 0), K, K)).copy(), rv + rpos
+        return A, np.broadcast_to(-G, (max(n - 1, 0), K, K)).copy(), rv + rpos - 0.5 * self.sparsity
 
-    def gradient(self, W: np.ndarray) -> np.ndarray:
-        """(F, K) gradient of eq. (4)'s energy at W (F, K): ``H w - r`` (:meth:`_quadratic`)."""
-        A, U, r = self._quadratic()
+    def gradient(self, W: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """(n, K) gradient of eq. (4)'s energy over frames ``start..stop-1`` at W (n, K): ``H w - r``
+        (:meth:`_quadratic`)."""
+        A, U, r = self._quadratic(start, stop)
         W = np.asarray(W, dtype=np.float64)
         g = np.einsum("tij,tj->ti", A, W) - r
         if W.shape[0] > 1:
@@ -651,8 +672,9 @@ class SeolSystem:
                 vals[f] = arr
         return mask, vals
 
-    def solve_bounded(self, pin_mask: np.ndarray, pin_values: np.ndarray, bounds: tuple[float, float],
-                      max_iterations: int = 50, tolerance: float = 1e-9) -> tuple[np.ndarray, int]:
+    def solve_bounded(self, pin_mask: np.ndarray, pin_values: np.ndarray, bounds: tuple[float, float] | None = None,
+                      max_iterations: int = 50, tolerance: float = 1e-9, start: int = 0,
+                      stop: int | None = None) -> tuple[np.ndarray, int]:
         """:meth:`solve` with every free weight kept in ``bounds`` = (lo, hi) (not in the paper).
 
         Primal active set: solve; pin each free weight outside the bounds at the bound it crossed and solve
@@ -661,8 +683,12 @@ class SeolSystem:
         or after ``max_iterations`` (then clipped). Each pass is the exact spacetime minimizer under its
         pins, so the movement matching is re-solved around the bound instead of being cut off as a clamp
         would (clamping the unbounded solution multiplied the fig. 11 velocity error by 17 on the ICT
-        tier). Returns (W (F, K) within bounds, passes).
+        tier). ``bounds`` defaults to the system's; ``start``/``stop`` as in :meth:`solve`.
+        Returns (W (n, K) within bounds, passes).
         """
+        bounds = self.bounds if bounds is None else bounds
+        if bounds is None:
+            raise InputError("solve_bounded needs bounds (the system has none)", fix="pass bounds=(lo, hi)")
         lo, hi = (float(v) for v in bounds)
         if not lo < hi:
             raise InputError(f"weight bounds {list(bounds)} are not an interval", path="config",
@@ -673,7 +699,7 @@ class SeolSystem:
         at_hi = np.zeros_like(user)
         W = None
         for it in range(1, max_iterations + 1):
-            W = self.solve(user | at_lo | at_hi, np.where(at_lo, lo, np.where(at_hi, hi, vals)))
+            W = self.solve(user | at_lo | at_hi, np.where(at_lo, lo, np.where(at_hi, hi, vals)), start, stop)
             free = ~(user | at_lo | at_hi)
             below, above = free & (W < lo - tolerance), free & (W > hi + tolerance)
             if below.any() or above.any():
@@ -681,7 +707,7 @@ class SeolSystem:
                 at_hi |= above
                 continue
             # release the bound pins whose multiplier has the wrong sign (the energy falls moving inside)
-            g = self.gradient(W)
+            g = self.gradient(W, start, stop)
             scale = tolerance * max(1.0, float(np.abs(g).max()))
             release = (at_lo & (g < -scale)) | (at_hi & (g > scale))
             if not release.any():
@@ -706,7 +732,9 @@ class SeolSystem:
                  beta=np.zeros(0) if self.beta is None else self.beta,
                  shape_names=np.asarray(self.shape_names, dtype=str),
                  marker_names=np.asarray(self.marker_names, dtype=str),
-                 visibility=np.zeros((0, 0), bool) if self.visibility is None else self.visibility)
+                 visibility=np.zeros((0, 0), bool) if self.visibility is None else self.visibility,
+                 bounds=np.zeros(0) if self.bounds is None else np.asarray(self.bounds, dtype=np.float64),
+                 sparsity=np.float64(self.sparsity))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "SeolSystem":
@@ -723,7 +751,9 @@ class SeolSystem:
                    beta=beta, ridge=float(z["ridge"]) if "ridge" in z.files else 1e-6,
                    shape_names=[str(s) for s in z["shape_names"]],
                    marker_names=[str(s) for s in z["marker_names"]] if "marker_names" in z.files else [],
-                   visibility=z["visibility"] if "visibility" in z.files and z["visibility"].size else None)
+                   visibility=z["visibility"] if "visibility" in z.files and z["visibility"].size else None,
+                   bounds=tuple(z["bounds"]) if "bounds" in z.files and z["bounds"].size else None,
+                   sparsity=float(z["sparsity"]) if "sparsity" in z.files else 0.0)
 
 
 def shape_index(shape_names: Sequence[str], name: str) -> int:
@@ -764,13 +794,43 @@ def solve_perframe_unconstrained(B: np.ndarray, S: np.ndarray, visibility: np.nd
 
 
 def solve_perframe_prior(B: np.ndarray, S: np.ndarray, prior_P: np.ndarray, prior_p: np.ndarray,
-                         alpha: float = DEFAULT_ALPHA_PERFRAME, visibility: np.ndarray | None = None) -> np.ndarray:
-    """"Prior PF": ``min ||B w_t - s_t||^2 + alpha E_prior(w_t)`` per frame (closed form). (F, K)."""
+                         alpha: float = DEFAULT_ALPHA_PERFRAME, visibility: np.ndarray | None = None,
+                         bounds: tuple[float, float] | None = None, sparsity: float = 0.0) -> np.ndarray:
+    """"Prior PF": ``min ||B w_t - s_t||^2 + alpha E_prior(w_t)`` per frame (closed form). (F, K).
+
+    ``bounds`` (lo, hi) and ``sparsity`` (``+ sparsity 1^T w_t``, the L1 norm on weights >= 0): the same
+    constraints as a bounded spacetime solve (:attr:`SeolSystem.bounds`, :attr:`SeolSystem.sparsity`), so
+    the two differ only by the movement matching; solved exactly per frame by bounded-variable least
+    squares on the Cholesky factor of ``G_t + alpha P``."""
     Gt, rhs = _perframe_normal(B, S, visibility)
-    if Gt is None:
-        A = B.T @ B + alpha * prior_P
-        return np.linalg.solve(A, (rhs + alpha * prior_p).T).T
-    return np.linalg.solve(Gt + alpha * prior_P, (rhs + alpha * prior_p)[..., None])[..., 0]
+    if bounds is None:
+        if sparsity:
+            raise InputError("the per-frame sparsity term needs bounds with a non-negative low end")
+        if Gt is None:
+            A = B.T @ B + alpha * prior_P
+            return np.linalg.solve(A, (rhs + alpha * prior_p).T).T
+        return np.linalg.solve(Gt + alpha * prior_P, (rhs + alpha * prior_p)[..., None])[..., 0]
+    return _bounded_perframe(B.T @ B + alpha * prior_P, None if Gt is None else Gt + alpha * prior_P,
+                             rhs + alpha * prior_p - 0.5 * float(sparsity), bounds)
+
+
+def _bounded_perframe(G: np.ndarray, Gt: np.ndarray | None, rhs: np.ndarray, bounds: tuple[float, float],
+                      tol: float = 1e-12) -> np.ndarray:
+    """``min_w w^T G_t w - 2 rhs_t^T w`` subject to ``lo <= w <= hi`` for every frame t: bounded-variable
+    least squares ``||C^T w - C^-1 rhs_t||`` with ``G_t = C C^T`` (same minimizer). G (K, K) shared or
+    Gt (F, K, K) per frame; rhs (F, K) -> (F, K)."""
+    from scipy.optimize import lsq_linear
+
+    lo, hi = float(bounds[0]), float(bounds[1])
+    K = G.shape[0]
+    eps = 1e-12 * max(np.trace(G) / K, 1e-12) * np.eye(K)
+    C = np.linalg.cholesky(G + eps)
+    out = np.empty((rhs.shape[0], K))
+    for f, b in enumerate(rhs):
+        Cf = C if Gt is None else np.linalg.cholesky(Gt[f] + eps)
+        r = scipy.linalg.solve_triangular(Cf, b, lower=True)
+        out[f] = lsq_linear(Cf.T, r, bounds=(lo, hi), method="bvls", tol=tol).x
+    return out
 
 
 def solve_perframe_range(B: np.ndarray, S: np.ndarray, bounds: tuple[float, float] = DEFAULT_WEIGHT_RANGE,
@@ -781,20 +841,8 @@ def solve_perframe_range(B: np.ndarray, S: np.ndarray, bounds: tuple[float, floa
     reduced K x K problem ``||C^T w - C^-1 B^T s_t||`` with ``B^T B = C C^T`` (same minimizer; with
     ``visibility`` the per-frame ``B_vis^T B_vis``). B (3M, K), S (F, 3M) -> (F, K).
     """
-    from scipy.optimize import lsq_linear
-
-    lo, hi = float(bounds[0]), float(bounds[1])
-    K = B.shape[1]
     Gt, rhs_all = _perframe_normal(B, S, visibility)
-    G = B.T @ B
-    eps = 1e-12 * max(np.trace(G) / K, 1e-12) * np.eye(K)
-    out = np.empty((rhs_all.shape[0], K))
-    C = np.linalg.cholesky(G + eps)
-    for f, b in enumerate(rhs_all):
-        Cf = C if Gt is None else np.linalg.cholesky(Gt[f] + eps)
-        r = scipy.linalg.solve_triangular(Cf, b, lower=True)
-        out[f] = lsq_linear(Cf.T, r, bounds=(lo, hi), method="bvls", tol=tol).x
-    return out
+    return _bounded_perframe(B.T @ B, Gt, rhs_all, bounds, tol)
 
 
 # --------------------------------------------------------------------------- fig. 11 error
@@ -925,6 +973,7 @@ def retarget_seol(
     scale_match_neighbors: int = 12,
     marker_lowpass_hz: float | None = None,
     weight_bounds: tuple[float, float] | None = None,
+    sparsity: float = 0.0,
 ) -> SeolResult:
     """Retarget a marker performance onto a blendshape target (Seol et al. 2012, all sections).
 
@@ -978,6 +1027,14 @@ def retarget_seol(
     weight_bounds : optional (lo, hi): the spacetime solution kept in the rig's weight range
         (:meth:`SeolSystem.solve_bounded`); the paper's is unconstrained (its prior keeps weights
         plausible, but negative weights that cancel each other still fit the markers). None (default).
+    sparsity : optional L1 term ``sparsity * sum |w|`` (mm^2 per unit weight; :attr:`SeolSystem.sparsity`;
+        not in the paper: Ribera et al. 2017's E_Sparse). Needs ``weight_bounds`` from 0. An actor's
+        expressions are never exactly the target's; the least-squares fit explains the difference with
+        small activations of unrelated shapes, which the L1 term suppresses. 0 (default).
+
+    With ``weight_bounds`` or ``sparsity`` the spacetime solve is no longer the paper's: the "perframe_prior"
+    baseline then gets the same bounds and sparsity (the comparison isolates the movement matching, as in
+    fig. 11), and the paper's unconstrained spacetime solution is added as ``baselines["spacetime_paper"]``.
 
     Returns :class:`SeolResult`.
     """
@@ -1056,7 +1113,8 @@ def retarget_seol(
     names = list(target.shape_names)
     mnames = list(marker_names) if marker_names is not None else list(target.marker_names)
     system = SeolSystem(B=B, S=S, prior_P=P, prior_p=p, alpha=alpha, beta=beta, ridge=ridge,
-                        shape_names=names, marker_names=mnames, visibility=vis)
+                        shape_names=names, marker_names=mnames, visibility=vis,
+                        bounds=None if weight_bounds is None else tuple(weight_bounds), sparsity=sparsity)
     S = system.S  # gaps zeroed (ignored through visibility)
     if boundary_values == "neutral":
         mask, vals = system.pins_for(boundary_frames, pins)
@@ -1068,7 +1126,7 @@ def retarget_seol(
         mask, vals = system.pins_for((), {**bpins, **dict(pins or {})})
     else:
         raise InputError(f"boundary_values '{boundary_values}' unknown", fix="use 'neutral' or 'perframe'")
-    W = system.solve(mask, vals) if weight_bounds is None else system.solve_bounded(mask, vals, weight_bounds)[0]
+    W = system.solve(mask, vals) if system.bounds is None else system.solve_bounded(mask, vals)[0]
     result = SeolResult(weights=W, shape_names=names, head_rotation=R, head_translation=head_d,
                         source_pivot=src_pivot, target_pivot=n_tgt.mean(0), system=system, warp=warp,
                         alpha=float(alpha))
@@ -1076,7 +1134,11 @@ def retarget_seol(
     if baselines:
         result.baselines["no_constraint"] = solve_perframe_unconstrained(B, S, vis)
         result.baselines["perframe_range"] = solve_perframe_range(B, S, weight_range, visibility=vis)
-        result.baselines["perframe_prior"] = solve_perframe_prior(B, S, P, p, alpha_perframe, visibility=vis)
+        result.baselines["perframe_prior"] = solve_perframe_prior(B, S, P, p, alpha_perframe, visibility=vis,
+                                                                  bounds=system.bounds, sparsity=system.sparsity)
+        if system.bounds is not None:
+            paper = replace(system, bounds=None, sparsity=0.0, visibility=vis)
+            result.baselines["spacetime_paper"] = paper.solve(mask, vals)
         for name, Wb in result.baselines.items():
             result.velocity_error[name] = velocity_error_per_frame(Wb, B, S, vis)
     return result
