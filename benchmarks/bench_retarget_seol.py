@@ -156,10 +156,18 @@ def _configs(K, M, fps):
         "proposed_config": dict(prior_corner_hz=0.03, fps=fps, prior_training=combos, boundary_values="perframe",
                                 scale_match="deformation", beta=sobolev),
         # exactly config/config.yaml and config/ict.yaml params.retarget.seol now: + the 5 Hz marker low-pass,
-        # weights in [0, 1] (Range-PF baseline too) and the L1 term (Prior-PF baseline with the same constraints)
+        # weights in [0, 1.5] (Range-PF baseline too) and the L1 term (Prior-PF baseline with the same constraints)
         "configs_now": dict(prior_corner_hz=0.03, fps=fps, prior_training=combos, boundary_values="perframe",
-                            scale_match="deformation", beta=sobolev, marker_lowpass_hz=5.0, weight_bounds=(0.0, 1.0),
-                            weight_range=(0.0, 1.0), sparsity=0.04),
+                            scale_match="deformation", beta=sobolev, marker_lowpass_hz=5.0, weight_bounds=(0.0, 1.5),
+                            weight_range=(0.0, 1.5), sparsity=0.04),
+        # the same with the rig's nominal [0, 1]: the actor's extremes can exceed the character's sculpted ones
+        # (this actor: 0.6-1.5x intensities), and an upper bound at 1 clips them
+        "configs_now_upper_1": dict(prior_corner_hz=0.03, fps=fps, prior_training=combos, boundary_values="perframe",
+                                    scale_match="deformation", beta=sobolev, marker_lowpass_hz=5.0,
+                                    weight_bounds=(0.0, 1.0), weight_range=(0.0, 1.0), sparsity=0.04),
+        "configs_now_no_l1": dict(prior_corner_hz=0.03, fps=fps, prior_training=combos, boundary_values="perframe",
+                                  scale_match="deformation", beta=sobolev, marker_lowpass_hz=5.0,
+                                  weight_bounds=(0.0, 1.5), weight_range=(0.0, 1.5)),
     }
 
 
