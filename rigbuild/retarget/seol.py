@@ -626,10 +626,11 @@ class SeolSystem:
         A = deg[:, None, None] * G[None] + (Pc[None] if constant else Pc)
         return A, np.broadcast_to(-G, (max(n - 1, 0), K, K)).copy(), rv + rpos - 0.5 * self.sparsity
 
-    def gradient(self, W: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
+    def gradient(self, W: np.ndarray, start: int = 0, stop: int | None = None,
+                 quadratic: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """(n, K) gradient of eq. (4)'s energy over frames ``start..stop-1`` at W (n, K): ``H w - r``
-        (:meth:`_quadratic`)."""
-        A, U, r = self._quadratic(start, stop)
+        (:meth:`_quadratic`; pass its result as ``quadratic`` to reuse it)."""
+        A, U, r = self._quadratic(start, stop) if quadratic is None else quadratic
         W = np.asarray(W, dtype=np.float64)
         g = np.einsum("tij,tj->ti", A, W) - r
         if W.shape[0] > 1:
@@ -699,13 +700,18 @@ class SeolSystem:
         if not lo < hi:
             raise InputError(f"weight bounds {list(bounds)} are not an interval", path="config",
                              fix="give [low, high] with low < high, e.g. [0, 1]")
+        # the energy does not change between passes, only the pins: assemble it once (half of a pass's time)
+        quad = self._quadratic(start, stop)
         user = np.array(pin_mask, dtype=bool, copy=True)
+        if user.shape != quad[2].shape or np.shape(pin_values) != quad[2].shape:
+            raise InputError(f"pins must be {quad[2].shape}, got {user.shape}")
         vals = np.where(user, np.asarray(pin_values, dtype=np.float64), 0.0)
         at_lo = np.zeros_like(user)
         at_hi = np.zeros_like(user)
         W = None
         for it in range(1, max_iterations + 1):
-            W = self.solve(user | at_lo | at_hi, np.where(at_lo, lo, np.where(at_hi, hi, vals)), start, stop)
+            W = _solve_pinned_block_tridiagonal(*quad, user | at_lo | at_hi,
+                                                np.where(at_lo, lo, np.where(at_hi, hi, vals)))
             free = ~(user | at_lo | at_hi)
             below, above = free & (W < lo - tolerance), free & (W > hi + tolerance)
             if below.any() or above.any():
@@ -713,7 +719,7 @@ class SeolSystem:
                 at_hi |= above
                 continue
             # release the bound pins whose multiplier has the wrong sign (the energy falls moving inside)
-            g = self.gradient(W, start, stop)
+            g = self.gradient(W, start, stop, quad)
             scale = tolerance * max(1.0, float(np.abs(g).max()))
             release = (at_lo & (g < -scale)) | (at_hi & (g > scale))
             if not release.any():
