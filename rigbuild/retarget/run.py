@@ -7,7 +7,6 @@ and the benchmark. I/O stays in the script; this module takes arrays and rigs.
 from __future__ import annotations
 
 import logging
-
 import os
 import time
 from dataclasses import dataclass, field

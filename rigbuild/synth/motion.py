@@ -43,28 +43,26 @@ def apply_base_shapes(weights: np.ndarray, shape_names: Sequence[str],
 #: Lower-face shapes (jaw, lips, cheek puff): a ROM performs them a few at a time, one after another.
 LOWER_FACE_PREFIXES: tuple[str, ...] = ("jaw", "mouth", "cheekPuff", "tongue")
 
+#: unsided antagonist pairs
+_CENTRE_PAIRS = [("mouthLeft", "mouthRight"), ("jawLeft", "jawRight"), ("mouthFunnel", "mouthRollLower"),
+                 ("mouthFunnel", "mouthRollUpper"), ("mouthPucker", "mouthRollLower"), ("mouthPucker", "mouthRollUpper"),
+                 ("mouthClose", "mouthFunnel"), ("mouthRollLower", "mouthShrugLower"),
+                 ("mouthRollUpper", "mouthShrugUpper")]
+#: a centre shape against both sides of a sided one (``mouthPucker`` vs ``mouthStretch_L`` and ``_R``)
+_CENTRE_SIDED = [("mouthPucker", "mouthStretch"), ("mouthPucker", "mouthSmile"), ("mouthFunnel", "mouthPress"),
+                 ("mouthClose", "mouthLowerDown"), ("mouthClose", "mouthUpperUp"), ("mouthRollLower", "mouthLowerDown"),
+                 ("mouthRollUpper", "mouthUpperUp")]
+#: sided shapes against each other on the same side (``eyeBlink_L`` vs ``eyeWide_L``)
+_SAME_SIDE = [("mouthSmile", "mouthFrown"), ("mouthPress", "mouthLowerDown"), ("eyeBlink", "eyeWide"),
+              ("eyeSquint", "eyeWide"), ("eyeLookUp", "eyeLookDown"), ("eyeLookIn", "eyeLookOut"),
+              ("browDown", "browInnerUp"), ("browDown", "browOuterUp")]
 #: Shape pairs that pull the same tissue opposite ways (or put the lips through each other): a ROM never holds
 #: both at once.
-ANTAGONISTS: frozenset[frozenset[str]] = frozenset(frozenset(p) for p in [
-    ("mouthLeft", "mouthRight"), ("jawLeft", "jawRight"),
-    ("mouthSmile_L", "mouthFrown_L"), ("mouthSmile_R", "mouthFrown_R"),
-    ("mouthPucker", "mouthStretch_L"), ("mouthPucker", "mouthStretch_R"),
-    ("mouthPucker", "mouthSmile_L"), ("mouthPucker", "mouthSmile_R"),
-    ("mouthFunnel", "mouthPress_L"), ("mouthFunnel", "mouthPress_R"),
-    ("mouthFunnel", "mouthRollLower"), ("mouthFunnel", "mouthRollUpper"),
-    ("mouthPucker", "mouthRollLower"), ("mouthPucker", "mouthRollUpper"),
-    ("mouthClose", "mouthFunnel"), ("mouthClose", "mouthLowerDown_L"), ("mouthClose", "mouthLowerDown_R"),
-    ("mouthClose", "mouthUpperUp_L"), ("mouthClose", "mouthUpperUp_R"),
-    ("mouthRollLower", "mouthShrugLower"), ("mouthRollUpper", "mouthShrugUpper"),
-    ("mouthRollLower", "mouthLowerDown_L"), ("mouthRollLower", "mouthLowerDown_R"),
-    ("mouthRollUpper", "mouthUpperUp_L"), ("mouthRollUpper", "mouthUpperUp_R"),
-    ("mouthPress_L", "mouthLowerDown_L"), ("mouthPress_R", "mouthLowerDown_R"),
-    ("eyeBlink_L", "eyeWide_L"), ("eyeBlink_R", "eyeWide_R"), ("eyeSquint_L", "eyeWide_L"),
-    ("eyeSquint_R", "eyeWide_R"), ("eyeLookUp_L", "eyeLookDown_L"), ("eyeLookUp_R", "eyeLookDown_R"),
-    ("eyeLookIn_L", "eyeLookOut_L"), ("eyeLookIn_R", "eyeLookOut_R"),
-    ("browDown_L", "browInnerUp_L"), ("browDown_R", "browInnerUp_R"),
-    ("browDown_L", "browOuterUp_L"), ("browDown_R", "browOuterUp_R"),
-])
+ANTAGONISTS: frozenset[frozenset[str]] = frozenset(
+    [frozenset(p) for p in _CENTRE_PAIRS]
+    + [frozenset((c, f"{s}_{side}")) for c, s in _CENTRE_SIDED for side in "LR"]
+    + [frozenset((f"{a}_{side}", f"{b}_{side}")) for a, b in _SAME_SIDE for side in "LR"]
+)
 
 
 def is_lower_face(name: str) -> bool:
