@@ -77,3 +77,40 @@ def test_ground_truth_tracking_metrics_from_files_exact(tmp_path):
     assert "errors" not in per["rom00"]
     with pytest.raises(ValueError, match="no frames"):
         ground_truth_tracking_metrics(gt, tmp_path / "cameras.json", F, np.arange(4), V, ("rom00", 7), {})
+
+
+def test_ground_truth_tracking_metrics_evaluate_the_observed_face(tmp_path):
+    """A face-region triangle that faces away from every camera is left out of the official errors (no camera
+    measures it) and counted in the mask_* errors; vertex counts and fractions exact."""
+    from rigbuild.camera import Camera, look_at
+    from rigbuild.eval.tracking import ground_truth_tracking_metrics, observed_face_vertices
+    from rigbuild.io.cameras import write_cameras
+
+    V, F = _mesh()
+    back = np.array([[0, 0, -5], [0, 10, -5], [10, 0, -5]], float)  # wound so its normal is -z
+    V = np.vstack([V, back])
+    F = np.vstack([F, [[4, 5, 6]]])
+    K = np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]])
+    cams = []
+    for i, eye in enumerate([[0, 0, 500], [300, 0, 400], [-300, 0, 400]]):
+        R, t = look_at(np.array(eye, float), np.zeros(3), np.array([0, 1.0, 0]))
+        cams.append(Camera(f"cam{i:02d}", 640, 480, K, np.zeros(5), R, t))
+    np.testing.assert_array_equal(observed_face_vertices(V, F, cams, np.arange(7)), [0, 1, 2, 3])
+    assert observed_face_vertices(V, F, cams, np.arange(7), min_cameras=4).size == 0
+    gt = tmp_path / "ground_truth"
+    (gt / "rom").mkdir(parents=True)
+    write_cameras(gt / "cameras.json", cams)
+    write_cameras(tmp_path / "cameras.json", cams)
+    truth = np.stack([V, V])
+    np.savez(gt / "rom" / "rom00.npz", vertices=truth.astype(np.float32), frames=np.array([0, 1]))
+    tracked = truth.copy()
+    tracked[:, 4:] += [0, 0, 0.7]  # the unseen triangle is off by 0.7 mm, the seen square exact
+    values, _ = ground_truth_tracking_metrics(gt, tmp_path / "cameras.json", F, np.arange(7), tracked[0],
+                                              ("rom00", 0), {"rom00": (tracked, np.array([0, 1]))})
+    assert values["observed_face_vertices"] == 4
+    assert values["observed_face_fraction"] == pytest.approx(4 / 7)
+    assert values["mean_error_mm"] == pytest.approx(0.0, abs=1e-5)
+    assert values["end_drift_mm"] == pytest.approx(0.0, abs=1e-5)
+    assert values["mask_mean_error_mm"] == pytest.approx(0.3, abs=1e-5)
+    assert values["mask_neutral_error_mm"] == pytest.approx(0.3, abs=1e-5)
+    assert values["neutral_error_mm"] == pytest.approx(0.0, abs=1e-5)

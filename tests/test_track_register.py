@@ -113,3 +113,19 @@ def test_register_neutral_to_warped_actor_scan(head):
     assert err.mean() < 0.3 * err_sim.mean()
     print("registration error mean", err.mean(), "similarity only", err_sim.mean())
     assert err.mean() < 0.6
+
+
+def test_point_cloud_normals_exact_on_a_plane_and_oriented():
+    """Points on the plane z = 0.3 x - 0.2 y: every PCA normal is the plane's normal, exactly, signed like the
+    orientation hint (half the hints point the other way)."""
+    from rigbuild.geometry.mesh import point_cloud_normals
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-10, 10, size=(500, 2))
+    P = np.column_stack([xy, 0.3 * xy[:, 0] - 0.2 * xy[:, 1]])
+    n_true = np.array([-0.3, 0.2, 1.0]) / np.linalg.norm([-0.3, 0.2, 1.0])
+    hint = np.where((np.arange(500) % 2 == 0)[:, None], n_true + [0.5, 0, 0], -n_true)
+    n = point_cloud_normals(P, hint, k=12)
+    expected = np.where((np.arange(500) % 2 == 0)[:, None], n_true, -n_true)
+    np.testing.assert_allclose(n, expected, atol=1e-9)
+    assert point_cloud_normals(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0, 3)

@@ -128,9 +128,14 @@ def neutral_dots(frames: list[ViewFrame], params: DotParams, cluster_mm: float =
     return X, rays
 
 
-def scan_from_depth(frames: list[ViewFrame], step: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """Point cloud (N, 3) mm with unit normals (N, 3) from the depth maps of a frame (every ``step`` px),
-    normals from cross products of neighbouring lifted pixels, oriented towards the camera."""
+def scan_from_depth(frames: list[ViewFrame], step: int = 2, normal_neighbours: int = 40
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Point cloud (N, 3) mm with unit normals (N, 3) from the depth maps of a frame (every ``step`` px).
+
+    Normals: the PCA of each point's ``normal_neighbours`` nearest points of the merged cloud
+    (:func:`rigbuild.geometry.mesh.point_cloud_normals`), oriented towards the camera like the cross product of
+    neighbouring lifted pixels; 0 keeps those one-pixel normals (their noise slides the point-to-plane
+    registration along the surface: ICT tier neutral, observed face 0.715 -> 0.567 mm with 40 neighbours)."""
     pts, nrm = [], []
     for f in frames:
         H, W = f.depth.shape
@@ -147,7 +152,12 @@ def scan_from_depth(frames: list[ViewFrame], step: int = 2) -> tuple[np.ndarray,
         n *= np.sign(np.einsum("nd,nd->n", n, view))[:, None]
         pts.append(P[ok])
         nrm.append(n)
-    return np.concatenate(pts), np.concatenate(nrm)
+    pts, nrm = np.concatenate(pts), np.concatenate(nrm)
+    if normal_neighbours > 0:
+        from rigbuild.geometry.mesh import point_cloud_normals
+
+        nrm = point_cloud_normals(pts, nrm, normal_neighbours)
+    return pts, nrm
 
 
 def _subset(m: Matches, keep: np.ndarray) -> Matches:
