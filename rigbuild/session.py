@@ -109,6 +109,7 @@ class SessionSpec:
     performances: list[PerformanceSpec] = field(default_factory=list)
     units: str = "mm"
     template_rig: str = "procedural"
+    dot_stencil_mm: float | None = None  # spacing of the painted stencil dots (rigbuild.dots), None: markers only
     raw: dict[str, Any] = field(default_factory=dict)
 
     # ----------------------------------------------------------------- paths
@@ -197,6 +198,7 @@ def session_from_dict(data: dict[str, Any], root: str | os.PathLike, source: str
         performances=[PerformanceSpec(str(p["name"]), str(p["file"])) for p in data.get("performances", [])],
         units=str(data.get("units", "mm")),
         template_rig=str(data.get("template_rig", "procedural")),
+        dot_stencil_mm=float(data["dot_stencil_mm"]) if data.get("dot_stencil_mm") is not None else None,
         raw=data,
     )
 

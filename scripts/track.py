@@ -17,6 +17,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+from rigbuild.dots import painted_dot_vertices  # noqa: E402
 from rigbuild.errors import InputError  # noqa: E402
 from rigbuild.io.atomic import atomic_path, save_npz, write_json, write_text  # noqa: E402
 from rigbuild.io.cameras import read_cameras  # noqa: E402
@@ -102,7 +103,8 @@ def run_neutral(smk) -> None:
     template = _template(spec, tp)
     params = TrackParams.from_dict({k: v for k, v in tp.items() if k not in ("registration", "template_rig")})
     t0 = time.perf_counter()
-    reg, _ = track_neutral_frame(template, frames, params, tp.get("registration"))
+    reg, _ = track_neutral_frame(template, frames, params, tp.get("registration"),
+                                 dot_vertices=painted_dot_vertices(template, spec.dot_stencil_mm))
     save_npz(smk.output.neutral, vertices=reg.vertices.astype(np.float32), markers=reg.markers.astype(np.float32),
              marker_vertices=template.marker_vertices, marker_names=np.asarray(template.marker_names),
              scale=np.float64(reg.similarity[0]), rotation=reg.similarity[1], translation=reg.similarity[2],
@@ -173,7 +175,8 @@ def run_sequence(smk) -> None:
     frames = [load_frame(spec, cameras, seq.name, f, depth_dir) for f in frame_ids]
     t0 = time.perf_counter()
     V, C, markers, stats = track_rom_sequence(template, neutral, anchor, frames, frame_ids, seq.name, params,
-                                              progress=lambda s: log.info("frame %d: %s", s.frame, s))
+                                              progress=lambda s: log.info("frame %d: %s", s.frame, s),
+                                              dot_vertices=painted_dot_vertices(template, spec.dot_stencil_mm))
     seconds = time.perf_counter() - t0
     lost = np.asarray([s.lost for s in stats], dtype=bool)
     if lost.any():  # lost frames reach the retargeting stages as marker gaps, not as wrong positions

@@ -121,3 +121,19 @@ def test_performance_c3d_matches_ground_truth(tiny_session):
     assert 0.01 < gaps.mean() < 0.1
     err = np.abs(take.markers - clean)[~gaps]
     assert err.max() < 0.1 * 6 and 0.05 < err.std() < 0.15  # the configured 0.1 mm sensor noise
+
+
+def test_dot_stencil_spacing_reaches_session_yaml(tmp_path):
+    """synthetic dot_stencil_mm -> session.yaml dot_stencil_mm -> SessionSpec; absent: markers only; a
+    non-positive spacing is refused naming the field."""
+    from rigbuild.errors import InputError
+    from rigbuild.session import session_from_dict
+    from rigbuild.synth.session import plan_session
+
+    plan = plan_session("tiny", {**TINY, "dot_stencil_mm": 16})
+    assert plan["dot_stencil_mm"] == 16.0
+    assert session_from_dict(plan, tmp_path).dot_stencil_mm == 16.0
+    plain = plan_session("tiny", TINY)
+    assert "dot_stencil_mm" not in plain and session_from_dict(plain, tmp_path).dot_stencil_mm is None
+    with pytest.raises(InputError, match="dot_stencil_mm"):
+        session_from_dict({**plan, "dot_stencil_mm": -2}, tmp_path)

@@ -129,3 +129,37 @@ def test_point_cloud_normals_exact_on_a_plane_and_oriented():
     expected = np.where((np.arange(500) % 2 == 0)[:, None], n_true, -n_true)
     np.testing.assert_allclose(n, expected, atol=1e-9)
     assert point_cloud_normals(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0, 3)
+
+
+def test_register_neutral_with_stencil_dots_beats_markers_alone(head):
+    """The same warped actor and scan as above: painting the stencil dots between the markers (and telling the
+    registration where they are on the template) lowers the face-region error; the markers output stays the
+    marker vertices."""
+    from rigbuild.dots import painted_dot_vertices
+    from rigbuild.synth.actor import make_actor_rig
+
+    actor, _ = make_actor_rig(head, seed=4)
+    R, t = _rot(5), np.array([3.0, -8.0, 400.0])
+    truth = apply_rigid(actor.neutral, R, t)
+    face = head.face_vertices
+    F = head.faces[np.isin(head.faces, face).all(1)]
+    rng = np.random.default_rng(1)
+    tri = rng.integers(0, len(F), 40000)
+    b = rng.dirichlet([1, 1, 1], tri.size)
+    N = vertex_normals(truth, head.faces)
+    pts = np.einsum("nk,nkd->nd", b, truth[F[tri]])
+    nrm = np.einsum("nk,nkd->nd", b, N[F[tri]])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    errors = {}
+    for spacing in (None, 16.0):
+        dv = painted_dot_vertices(head, spacing)
+        dots = truth[dv][rng.permutation(dv.size)]
+        reg = register_neutral(head, pts, nrm, dots, iterations=10, dot_vertices=dv)
+        assert reg.dot_labels.shape == (dv.size,)
+        assert np.mean(reg.dot_labels >= 0) > 0.95
+        assert reg.markers.shape == (head.marker_vertices.size, 3)
+        np.testing.assert_allclose(reg.markers, reg.vertices[head.marker_vertices])
+        errors[spacing] = float(np.linalg.norm(reg.vertices[face] - truth[face], axis=1).mean())
+    print("registration error: markers only", errors[None], "with the 16 mm stencil", errors[16.0])
+    assert painted_dot_vertices(head, 16.0).size > head.marker_vertices.size + 20
+    assert errors[16.0] < 0.8 * errors[None]

@@ -47,8 +47,8 @@ class RayObservations:
 @dataclass
 class NeutralRegistration:
     """Result: ``vertices`` (V, 3) mm actor neutral in template topology; ``markers`` (M, 3) the marker
-    vertices on it; ``similarity`` (s, R, t) template -> world; ``dot_labels`` (M,) index of the dot
-    matched to each marker (-1 none); per-iteration ``history`` of residuals (mm)."""
+    vertices on it; ``similarity`` (s, R, t) template -> world; ``dot_labels`` (D,) index of the dot
+    matched to each painted dot vertex (the markers first; -1 none); per-iteration ``history`` of residuals (mm)."""
 
     vertices: np.ndarray
     markers: np.ndarray
@@ -310,6 +310,7 @@ def register_neutral(
     visibility_mm: float = 2.0,
     relabel_at: tuple[int, ...] = (4, 8),
     relabel_gate_mm: float = 3.0,
+    dot_vertices: np.ndarray | None = None,
 ) -> NeutralRegistration:
     """Register the template's neutral to the actor's neutral scan.
 
@@ -332,6 +333,8 @@ def register_neutral(
 
     relabel_at : iterations before which the dots are labeled again from the current mesh's markers
         (:func:`relabel_dots`, gate ``relabel_gate_mm``); () keeps the first labeling.
+    dot_vertices : (D,) template vertices of the painted dots (:func:`rigbuild.dots.painted_dot_vertices`:
+        the markers and the stencil dots); default: the markers.
 
     Returns :class:`NeutralRegistration` (vertices in full template topology).
     """
@@ -342,16 +345,17 @@ def register_neutral(
         raise InputError(f"the neutral scan has only {scan_points.shape[0]} points",
                          fix="check the reconstruction of the neutral frame (depth maps / fused mesh)")
     mesh = mesh or build_tracking_mesh(template.neutral, template.faces, template.face_region)
-    labels, (s, R, t), _ = label_dots(template.markers(), dots)
+    dot_vertices = template.marker_vertices if dot_vertices is None else np.asarray(dot_vertices, np.int64)
+    labels, (s, R, t), _ = label_dots(template.neutral[dot_vertices], dots)
     aligned_full = apply_rigid(template.neutral, R, t, s)
     if affine:  # landmark-driven affine refinement (captures anisotropic proportions)
         lab = labels >= 0
-        A, b = fit_affine(template.markers()[lab], dots[labels[lab]])
+        A, b = fit_affine(template.neutral[dot_vertices][lab], dots[labels[lab]])
         aligned_full = template.neutral @ A.T + b
     rest = mesh.local(aligned_full)
     solver = LaplacianSolver(rest, mesh.faces)
     tree = cKDTree(scan_points)
-    mk_local = mesh.full_to_local[template.marker_vertices]
+    mk_local = mesh.full_to_local[dot_vertices]
 
     def constraints(labels: np.ndarray):
         """Dot and ray constraints of a labeling: (has_dot, dot tri/bary/targets, ray local/tri/bary/origin/dir)."""

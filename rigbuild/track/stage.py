@@ -20,17 +20,20 @@ from rigbuild.track.sequence import FrameStats, SequenceTracker, TrackParams, ne
 
 
 def track_neutral_frame(template: Rig, frames: list[ViewFrame], params: TrackParams | None = None,
-                        registration: dict | None = None) -> tuple[NeutralRegistration, TrackingMesh]:
+                        registration: dict | None = None, dot_vertices: np.ndarray | None = None
+                        ) -> tuple[NeutralRegistration, TrackingMesh]:
     """Register the template neutral to the neutral frame's reconstruction (depth maps) and painted dots.
 
-    registration : extra keyword arguments of :func:`register_neutral` (iterations, lam_schedule, ...).
+    registration : extra keyword arguments of :func:`register_neutral` (iterations, lam_schedule, ...);
+    dot_vertices : (D,) template vertices of the painted dots (:func:`rigbuild.dots.painted_dot_vertices`),
+    default the markers.
     """
     require_markers(template)
     p = params or TrackParams()
     dots, rays = neutral_dots(frames, p.dots)
     pts, nrm = scan_from_depth(frames)
     mesh = build_tracking_mesh(template.neutral, template.faces, template.face_region)
-    kw = {"depth_views": [(f.camera, f.depth) for f in frames]}
+    kw = {"depth_views": [(f.camera, f.depth) for f in frames], "dot_vertices": dot_vertices}
     kw.update(registration or {})
     reg = register_neutral(template, pts, nrm, dots, rays, mesh=mesh, **kw)
     return reg, mesh
@@ -38,13 +41,14 @@ def track_neutral_frame(template: Rig, frames: list[ViewFrame], params: TrackPar
 
 def track_rom_sequence(template: Rig, neutral_vertices: np.ndarray, anchor_frames: list[ViewFrame],
                        frames: list[list[ViewFrame]], frame_ids: list[int], sequence: str,
-                       params: TrackParams | None = None, progress=None
+                       params: TrackParams | None = None, progress=None, dot_vertices: np.ndarray | None = None
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[FrameStats]]:
     """Track one ROM sequence from its neutral frame.
 
     template : the template rig (topology, face region, markers); neutral_vertices (V, 3) mm: the registered
     actor neutral; anchor_frames : the views of the global neutral frame; frames : per frame, its views;
-    frame_ids : frame numbers. Returns vertices (F, V, 3) float32 mm (full topology), confidence (F, V)
+    frame_ids : frame numbers; dot_vertices : (D,) template vertices of the painted dots (default the markers).
+    Returns vertices (F, V, 3) float32 mm (full topology), confidence (F, V)
     float32, markers (F, M, 3) mm (lost frames are flagged in stats, not NaN here; scripts/track.py writes them as gaps),
     stats per frame.
     """
@@ -52,10 +56,11 @@ def track_rom_sequence(template: Rig, neutral_vertices: np.ndarray, anchor_frame
     if len(frames) == 0:
         raise InputError(f"sequence '{sequence}' has no frames", path="session.yaml", fix="check rom frames")
     mesh = build_tracking_mesh(template.neutral, template.faces, template.face_region)
-    mk_local = mesh.full_to_local[template.marker_vertices]
+    dot_vertices = template.marker_vertices if dot_vertices is None else np.asarray(dot_vertices, np.int64)
+    mk_local = mesh.full_to_local[dot_vertices]
     if np.any(mk_local < 0):
-        raise InputError("some marker vertices are not on the tracked face mesh",
-                         fix="markers must lie on the connected skin surface of the template")
+        raise InputError("some painted dot (marker or stencil) vertices are not on the tracked face mesh",
+                         fix="markers and stencil dots must lie on the connected skin surface of the template")
     tracker = SequenceTracker(mesh.local(neutral_vertices), mesh.faces, mk_local, anchor_frames, params,
                               mesh.vertex_tri, mesh.vertex_corner)
     V, C, stats = tracker.track(frames, frame_ids, sequence, progress=progress)
