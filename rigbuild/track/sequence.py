@@ -265,8 +265,10 @@ class SequenceTracker:
             m2 = self.dot_matches(frames, apply_rigid(self.neutral, R, t), r_px)
             if m2.n >= 4:
                 R, t, _ = self._robust_rigid(m2, self.neutral)
-        # neutral check on all dots found around the rigidly placed neutral (expression dots included)
-        m = self.dot_matches(frames, apply_rigid(self.neutral, R, t), self.p.dot_radius_px[0])
+        # neutral check: every dot found where the rigidly placed neutral predicts it, at the finest radius (the
+        # radius the anchor's dots were counted at; a coarse radius lets a dense dot pattern trade dots between
+        # neighbours in the one-to-one assignment); dots an expression moved away are missing, i.e. misfits
+        m = self.dot_matches(frames, apply_rigid(self.neutral, R, t), self.p.dot_radius_px[-1])
         src = np.einsum("nk,nkd->nd", m.bary, self.neutral[self.faces[m.tri]])
         r = np.linalg.norm(apply_rigid(src, R, t) - m.targets, axis=1)
         # dots seen on the anchor (neutral) frame but not found near the rigid neutral count as misfits
