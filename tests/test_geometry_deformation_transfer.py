@@ -144,3 +144,26 @@ def test_two_worker_processes_give_the_same_transfer():
     sample = np.array([3, 40, 60, 77, 100])
     sampled = deformation_transfer(verts, deltas, faces, target, sample_vertices=sample, workers=2)
     np.testing.assert_allclose(sampled, serial[:, sample], atol=1e-12)
+
+
+def test_aligned_transfer_onto_a_rotated_target_rotates_the_shapes():
+    """A target that is the source turned 150 degrees, scaled 1.2 and moved (a tracked neutral in the cameras'
+    world): the aligned transfer returns the source shapes turned and scaled with it, exactly; the plain
+    transfer moves the target along the source's axes instead (cosine with the right answer well below 1)."""
+    import cv2
+
+    from rigbuild.geometry.deformation_transfer import deformation_transfer_aligned
+
+    V, F = grid_mesh()
+    D = local_deltas(V)
+    R = cv2.Rodrigues(np.array([0.2, 1.0, 0.3]) / np.linalg.norm([0.2, 1.0, 0.3]) * np.radians(150))[0]
+    target = 1.2 * V @ R.T + [10.0, -4.0, 300.0]
+    expected = 1.2 * D @ R.T
+    got = deformation_transfer_aligned(V, D, F, target)
+    np.testing.assert_allclose(got, expected, atol=1e-6)
+    plain = deformation_transfer(V, D, F, target)
+    cos = np.sum(plain * expected) / (np.linalg.norm(plain) * np.linalg.norm(expected))
+    assert cos < 0.9
+    # an already aligned target: the same as the plain transfer
+    np.testing.assert_allclose(deformation_transfer_aligned(V, D, F, V + [1.0, 2.0, 3.0]),
+                               deformation_transfer(V, D, F, V + [1.0, 2.0, 3.0]), atol=1e-9)

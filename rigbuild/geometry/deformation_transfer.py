@@ -396,3 +396,31 @@ def _pieces_reaching(free: np.ndarray, e_rows: np.ndarray, e_cols: np.ndarray, s
     keep = np.zeros(V + 1, dtype=bool)
     keep[order] = True
     return keep[:V] & free
+
+
+def deformation_transfer_aligned(
+    source_neutral: np.ndarray,
+    source_deltas: np.ndarray,
+    faces: np.ndarray,
+    target_neutral: np.ndarray,
+    align_vertices: np.ndarray | None = None,
+    workers: int = 1,
+) -> np.ndarray:
+    """:func:`deformation_transfer` onto a target that lives in another world frame (e.g. a tracked neutral in
+    the calibrated cameras' frame while the template rig is in its own).
+
+    Deformation gradients are expressed in world axes, so transferring them onto a rotated target would move
+    its vertices along the source's axes (a template's ``mouthLeft`` would move the actor's mouth to wherever
+    the template's +x points in the target's world). The source is first placed on the target by the
+    least-squares similarity over ``align_vertices`` (default all; e.g. the face region) and its displacements
+    rotated and scaled with it. Returns (K, V, 3) target displacements in the target's frame; equals
+    :func:`deformation_transfer` when the similarity is the identity.
+    """
+    from rigbuild.geometry.rigid import apply_rigid, fit_similarity
+
+    src = np.asarray(source_neutral, dtype=np.float64)
+    tgt = np.asarray(target_neutral, dtype=np.float64)
+    v = np.arange(src.shape[0]) if align_vertices is None else np.asarray(align_vertices, dtype=np.int64)
+    s, R, t = fit_similarity(src[v], tgt[v])
+    deltas = s * np.asarray(source_deltas, dtype=np.float64) @ R.T
+    return deformation_transfer(apply_rigid(src, R, t, s), deltas, faces, tgt, workers=workers)

@@ -15,7 +15,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from rigbuild.errors import InputError
-from rigbuild.geometry.deformation_transfer import deformation_transfer
+from rigbuild.geometry.deformation_transfer import deformation_transfer_aligned
 from rigbuild.io.atomic import save_npz, write_json
 from rigbuild.io.gltf import write_gltf_rig
 from rigbuild.io.metrics import merge_metrics
@@ -125,7 +125,10 @@ def run_personalization(
     log.info("neutral: sequence %s, tracked frame index %d", nseq, idx)
 
     region = template.face_vertices if opts.get("fit_region", "face") == "face" else None
-    Dstar = deformation_transfer(template.neutral, template.deltas, template.faces, b0, workers=workers)
+    # the tracked neutral is in the calibrated cameras' world, the template in its own: the template's shapes are
+    # turned with the template placed on b0 before their deformation gradients are transferred
+    Dstar = deformation_transfer_aligned(template.neutral, template.deltas, template.faces, b0,
+                                         align_vertices=template.face_vertices, workers=workers)
     zero = [template.shape_names[k] for k in range(template.n_shapes) if not np.any(Dstar[k])]
     if zero:
         raise InputError(f"all-zero shape(s) in the template rig: {', '.join(zero)}",
