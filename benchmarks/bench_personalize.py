@@ -38,7 +38,7 @@ from common import print_table, write_result  # noqa: E402
 from personalize_scene import make_rom_scene  # noqa: E402
 
 from rigbuild.eval.personalization import personalization_metrics, rms_shape_error  # noqa: E402
-from rigbuild.geometry.deformation_transfer import deformation_transfer  # noqa: E402
+from rigbuild.geometry.deformation_transfer import deformation_transfer_aligned  # noqa: E402
 from rigbuild.io.rigs import read_ict_rig  # noqa: E402
 from rigbuild.paths import ict_dir  # noqa: E402
 from rigbuild.personalize.em import PersonalizeParams, fit_weights_and_rigid, grow_ring, personalize  # noqa: E402
@@ -91,7 +91,7 @@ def main(quick: bool = False, acceptance_only: bool = False, faithful: bool = Fa
     # ---------------------------------------------------------------- 1. shape solve
     sc = make_rom_scene(tpl, n_sequences=4, frames_per_sequence=15, seed=3, identity_folder=ict_dir())
     frames_rig = np.einsum("fji,fvj->fvi", sc.rotations, sc.vertices - sc.translations[:, None])
-    Dstar = deformation_transfer(tpl.neutral, tpl.deltas, tpl.faces, sc.vertices[0])
+    Dstar = deformation_transfer_aligned(tpl.neutral, tpl.deltas, tpl.faces, sc.vertices[0], tpl.face_region)
     rows = []
     active = grow_ring(tpl.face_region, tpl.faces, tpl.n_vertices, 2)
     mags = np.sort(np.linalg.norm(Dstar[:, active], axis=2).ravel())[::-1]
@@ -173,7 +173,7 @@ def run_case(tpl, sc, vertices, confidence, label, n_fit_seq=4) -> dict:
     fit = sc.sequence_ids < n_fit_seq
     fr = tpl.face_region
     b0 = vertices[0]
-    Dstar = deformation_transfer(tpl.neutral, tpl.deltas, tpl.faces, b0)
+    Dstar = deformation_transfer_aligned(tpl.neutral, tpl.deltas, tpl.faces, b0, tpl.face_region)
     p = PersonalizeParams()
     cf = None if confidence is None else confidence[fit]
     ch = None if confidence is None else confidence[~fit]
@@ -198,7 +198,7 @@ def rom_peak_bound(tpl) -> dict:
                         peak_range=(0.6, 1.0))
     fit = sc.sequence_ids < 11
     fr = tpl.face_region
-    Dstar = deformation_transfer(tpl.neutral, tpl.deltas, tpl.faces, sc.vertices[0])
+    Dstar = deformation_transfer_aligned(tpl.neutral, tpl.deltas, tpl.faces, sc.vertices[0], tpl.face_region)
     peak = sc.weights[fit].max(0)
     e0 = rms_shape_error(Dstar, sc.actor.deltas, fr)
     e1 = rms_shape_error(peak[:, None, None] * sc.actor.deltas, sc.actor.deltas, fr)
@@ -217,7 +217,7 @@ def acceptance(tpl, gauge: str = "rom_peak", peak_range: tuple[float, float] = (
     fit = sc.sequence_ids < 11
     fr = tpl.face_region
     b0 = sc.vertices[0]
-    Dstar = deformation_transfer(tpl.neutral, tpl.deltas, tpl.faces, b0)
+    Dstar = deformation_transfer_aligned(tpl.neutral, tpl.deltas, tpl.faces, b0, tpl.face_region)
     p = PersonalizeParams(gauge=gauge)
     t0 = time.perf_counter()
     res = personalize(b0, Dstar, tpl.faces, sc.vertices[fit], None, sc.sequence_ids[fit], p, tpl.shape_names,
