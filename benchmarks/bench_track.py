@@ -1,7 +1,7 @@
 """Benchmark of the tracking stage: seconds per frame vs number of cameras (1280x960, ICT head) and the
 Laplacian solver vs mesh size. Prints a table and writes benchmarks/out/track.json.
 
-    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_track.py [--cameras 2 4 8] [--size 1280 960]
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_track.py [--cameras 2 4 8] [--size 1280 960] [--workers 2]
 
 Frames are rendered from a synthetic ICT actor (GT depth buffers stand in for the reconstruction, so only
 tracking is timed). Issue goal: under 5 s per frame for 8 cameras at 1280x960 on 2 cores.
@@ -70,6 +70,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--cameras", type=int, nargs="+", default=[2, 4, 8])
     ap.add_argument("--size", type=int, nargs=2, default=[1280, 960])
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                    help="threads sharing the views (TrackParams.workers; default: all cores)")
     args = ap.parse_args()
     from rigbuild.io.rigs import load_rig
     from rigbuild.paths import ict_dir
@@ -82,7 +84,8 @@ def main() -> None:
     from rigbuild.track.stage import track_neutral_frame, track_rom_sequence
 
     W, H = args.size
-    out = {"image_size": [W, H], "cpu_count": os.cpu_count(), "load_avg_start": os.getloadavg(), "cameras": {},
+    out = {"image_size": [W, H], "cpu_count": os.cpu_count(), "workers": args.workers,
+           "load_avg_start": os.getloadavg(), "cameras": {},
            "solver": {}}
     # ---- solver vs mesh size
     for name, rig in (("procedural", load_rig("procedural")), ("ict", ict_with_markers())):
@@ -132,7 +135,7 @@ def main() -> None:
         for levels in (("features",), ("features", "sparse"), ("features", "sparse", "flow")):
             t0, c0 = time.perf_counter(), time.process_time()
             V, C, mk, stats = track_rom_sequence(template, reg.vertices, frames[0], frames, [0, 1], "bench",
-                                                 TrackParams(levels=levels))
+                                                 TrackParams(levels=levels, workers=args.workers))
             dt, dc = time.perf_counter() - t0, time.process_time() - c0
             face = template.face_vertices
             e = np.linalg.norm(V[1][face] - verts[1][face], axis=1)

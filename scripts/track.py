@@ -166,6 +166,7 @@ def run_sequence(smk) -> None:
         raise InputError(f"no ROM sequence '{seq_name}'", path=session_root / "session.yaml")
     template = _template(spec, tp)
     params = TrackParams.from_dict({k: v for k, v in tp.items() if k not in ("registration", "template_rig")})
+    params.workers = max(int(smk.threads), 1)
     with np.load(smk.input.neutral) as z:
         neutral = z["vertices"].astype(np.float64)
     anchor_seq = spec.rom[0]

@@ -154,3 +154,46 @@ def test_script_reads_reconstruct_depth_files(tmp_path):
 
     img = cv2.imread(str(tmp_path / "residuals.png"))
     assert img is not None and img.shape[0] > 100 and img.shape[1] > 300
+
+
+def test_surface_neighbours_follow_the_mesh_not_the_gap():
+    from rigbuild.track.features import surface_neighbours
+
+    # a unit square (two triangles, diagonal 0-2) and a second square 0.1 above it, not connected to it
+    sq = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    V = np.concatenate([sq, sq + [0, 0, 0.1]])
+    F = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    nb, d = surface_neighbours(V, F, np.array([0, 1, 2, 4]), k=2, limit_mm=10.0)
+    np.testing.assert_array_equal(nb[0], [1, 2])  # vertex 0: vertex 1 (one edge), vertex 2 (the diagonal)
+    np.testing.assert_allclose(d[0], [1.0, np.sqrt(2.0)])
+    np.testing.assert_allclose(d[1], [1.0, 1.0])  # vertex 1: vertices 0 and 2, one edge each
+    # vertex 4 is 0.1 from vertex 0 in space but on another surface: no neighbour along the mesh
+    np.testing.assert_array_equal(nb[3], [-1, -1])
+    assert np.all(np.isinf(d[3]))
+
+
+def test_consistent_displacements_drops_the_odd_one_out():
+    from rigbuild.track.features import consistent_displacements
+
+    d = np.array([[1.0, 0, 0], [1.2, 0, 0], [0.9, 0, 0], [9.0, 0, 0], [5.0, 5.0, 0]])
+    present = np.array([True, True, True, True, False])
+    nbrs = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2], [0, 1, 2]])
+    ok = consistent_displacements(d, present, nbrs, tolerance_mm=2.0)
+    np.testing.assert_array_equal(ok, [True, True, True, False, False])
+    lonely = consistent_displacements(d, present, np.full((5, 3), -1), tolerance_mm=2.0)
+    np.testing.assert_array_equal(lonely, present)  # no present neighbour: kept
+
+
+def test_points_flow_recovers_a_large_shift():
+    from rigbuild.track.flow import points_flow
+
+    rng = np.random.default_rng(3)
+    # texture with structure at every scale (as a face has), so the coarse pyramid levels see it
+    tex = sum(cv2.resize(cv2.GaussianBlur(rng.random((480 // k, 640 // k)), (0, 0), 1.0), (640, 480))
+              for k in (1, 4, 16))
+    tex = cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    shifted = np.roll(tex, (30, 45), axis=(0, 1))  # 45 px right, 30 px down
+    pts = np.array([[300.0, 200.0], [350.5, 260.25], [np.nan, np.nan]])
+    f = points_flow(tex, shifted, pts, scale=0.5)
+    np.testing.assert_allclose(f[:2], [[45.0, 30.0], [45.0, 30.0]], atol=0.3)
+    assert np.isnan(f[2]).all()

@@ -163,3 +163,21 @@ def test_register_neutral_with_stencil_dots_beats_markers_alone(head):
     print("registration error: markers only", errors[None], "with the 16 mm stencil", errors[16.0])
     assert painted_dot_vertices(head, 16.0).size > head.marker_vertices.size + 20
     assert errors[16.0] < 0.8 * errors[None]
+
+
+def test_closest_point_targets_gate_distance_and_normal_angle():
+    from scipy.spatial import cKDTree
+
+    from rigbuild.track.register import closest_point_targets
+
+    scan = np.array([[0.0, 0.0, 1.0], [10.0, 0.0, 0.5], [20.0, 0.0, 5.0]])
+    a = np.radians(45.0)
+    scan_n = np.array([[0, 0, 1.0], [np.sin(a), 0, np.cos(a)], [0, 0, 1.0]])
+    pts = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [20.0, 0.0, 0.0]])
+    nrm = np.tile([0, 0, 1.0], (3, 1))
+    tgt, w, d = closest_point_targets(pts, nrm, cKDTree(scan), scan, scan_n, gate_mm=2.0, max_angle_deg=60.0)
+    np.testing.assert_allclose(tgt[0], [0, 0, 1.0])  # on the tangent plane of the scan point
+    np.testing.assert_allclose(d, [1.0, 0.5, 5.0])
+    np.testing.assert_allclose(w, [1.0, np.cos(a), 0.0])  # third: beyond the distance gate
+    _, w30, _ = closest_point_targets(pts, nrm, cKDTree(scan), scan, scan_n, gate_mm=2.0, max_angle_deg=30.0)
+    np.testing.assert_allclose(w30, [1.0, 0.0, 0.0])  # the 45-degree normal is rejected at 30 degrees

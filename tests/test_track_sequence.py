@@ -121,3 +121,25 @@ def test_template_without_markers_is_an_input_error(scene):
     template, actor, verts, frames = scene
     with pytest.raises(InputError, match="marker"):
         track_neutral_frame(template.with_markers([], []), frames[0])
+
+
+def test_views_shared_by_threads_give_the_same_tracking(scene, registered):
+    from rigbuild.track.stage import track_rom_sequence
+
+    template, actor, verts, frames = scene
+    out = []
+    for workers in (1, 3):
+        fresh = [[ViewFrame(v.camera, v.image, v.depth) for v in views] for views in frames[:2]]
+        V, C, _, stats = track_rom_sequence(template, registered.vertices, fresh[0], fresh, [0, 1], "rom00",
+                                            TrackParams(workers=workers))
+        out.append((V, C, [(s.dots, s.sparse, s.flow) for s in stats]))
+    np.testing.assert_allclose(out[0][0], out[1][0], atol=1e-9)
+    np.testing.assert_allclose(out[0][1], out[1][1], atol=1e-12)
+    assert out[0][2] == out[1][2]
+
+
+def test_map_views_keeps_the_view_order():
+    from rigbuild.track.matches import map_views
+
+    assert map_views(lambda v: v * v, 7, workers=3) == [0, 1, 4, 9, 16, 25, 36]
+    assert map_views(lambda v: v, 0, workers=2) == []

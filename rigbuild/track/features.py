@@ -270,3 +270,50 @@ def depth_to_image_grid(depth_pinhole: np.ndarray, camera: Camera, K_pinhole: np
     z[~(step <= max_step_mm)] = np.nan
     z[~(z > 0)] = np.nan
     return z.reshape(H, W).astype(np.float32)
+
+
+def surface_neighbours(vertices: np.ndarray, faces: np.ndarray, sources: np.ndarray, k: int = 5,
+                       limit_mm: float = 60.0) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` nearest other sources of each source vertex along the mesh's edges (geodesic-like: the
+    lips are far apart through the mouth corners although close in space).
+
+    vertices (V, 3) mm, faces (F, 3), sources (S,) vertex ids. Returns neighbours (S, k) indices into
+    ``sources`` (-1 where fewer than k lie within ``limit_mm``) and their distances (S, k) mm (inf there).
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import dijkstra
+
+    V = np.asarray(vertices, np.float64)
+    F = np.asarray(faces, np.int64)
+    e = np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0)
+    w = np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1)
+    G = sp.coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(V.shape[0],) * 2).tocsr()
+    src = np.asarray(sources, np.int64)
+    D = dijkstra(G, indices=src, limit=limit_mm)[:, src]
+    np.fill_diagonal(D, np.inf)
+    order = np.argsort(D, axis=1)[:, :k]
+    dist = np.take_along_axis(D, order, 1)
+    return np.where(np.isfinite(dist), order, -1), dist
+
+
+def consistent_displacements(displacements: np.ndarray, present: np.ndarray, neighbours: np.ndarray,
+                             tolerance_mm: float, min_neighbours: int = 1) -> np.ndarray:
+    """Which labeled points move like their neighbours: (S,) bool.
+
+    displacements (S, 3) mm (target minus predicted position; rows where ``present`` is False are ignored);
+    neighbours (S, k) from :func:`surface_neighbours`. A present point is inconsistent when its displacement
+    differs from the per-axis median of its present neighbours' displacements by more than ``tolerance_mm``
+    (a dot assigned to its neighbour's detection after a large motion is off by about one dot spacing);
+    points with fewer than ``min_neighbours`` present neighbours are kept.
+    """
+    d = np.asarray(displacements, np.float64)
+    present = np.asarray(present, bool)
+    nb = np.asarray(neighbours, np.int64)
+    ok_nb = (nb >= 0) & present[np.maximum(nb, 0)]
+    vals = np.where(ok_nb[..., None], d[np.maximum(nb, 0)], np.nan)
+    enough = ok_nb.sum(1) >= min_neighbours
+    med = np.full(d.shape, np.nan)
+    if enough.any():
+        med[enough] = np.nanmedian(vals[enough], axis=1)
+    dev = np.linalg.norm(d - med, axis=1)
+    return present & (~enough | (dev <= tolerance_mm))

@@ -22,6 +22,21 @@ from rigbuild.track.features import lift
 from rigbuild.track.laplacian import interpolate, interpolated_normals, normal_displacement, vertex_normals
 
 
+def map_views(fn, n_views: int, workers: int = 1) -> list:
+    """``[fn(v) for v in range(n_views)]``, on a pool of ``workers`` threads when ``workers > 1``.
+
+    The per-view work of the matching levels (SIFT, DIS flow, remaps, KD-tree queries) runs in OpenCV, NumPy
+    and SciPy code that releases the GIL, so views proceed in parallel; each view touches only its own
+    frames and caches. Results keep the view order.
+    """
+    if workers <= 1 or n_views <= 1:
+        return [fn(v) for v in range(n_views)]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=min(workers, n_views)) as pool:
+        return list(pool.map(fn, range(n_views)))
+
+
 @dataclass
 class ViewFrame:
     """One camera at one frame: RGB image (H, W, 3) uint8, camera-z depth map (H, W) float32 mm (NaN = none)."""

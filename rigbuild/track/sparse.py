@@ -90,14 +90,15 @@ def match_guided(src_pts: np.ndarray, src_desc: np.ndarray, predicted: np.ndarra
 
 
 def sparse_matches(source: Source, targets: list[ViewFrame], estimate: np.ndarray, round_index: int,
-                   schedule: SparseSchedule, max_prediction_error_mm: float = 6.0) -> Matches:
+                   schedule: SparseSchedule, max_prediction_error_mm: float = 6.0, workers: int = 1) -> Matches:
     """SIFT matches source -> target in every view for round ``round_index`` of the schedule, lifted to
-    barycentric constraints. Weight = ``1 - distance / threshold``."""
-    from rigbuild.track.matches import concat
+    barycentric constraints. Weight = ``1 - distance / threshold``. ``workers`` threads share the views."""
+    from rigbuild.track.matches import concat, map_views
 
-    out = []
     r = min(round_index, len(schedule.radius_px) - 1)
-    for v, tgt in enumerate(targets):
+
+    def view_matches(v: int) -> Matches:
+        tgt = targets[v]
         sv = source.views[v]
         scale = tgt.camera.width / 1280.0
         sp, sd = sift_features(sv.frame, schedule)
@@ -111,7 +112,8 @@ def sparse_matches(source: Source, targets: list[ViewFrame], estimate: np.ndarra
         si, ti, dist = match_guided(sp, sd, pred, tp, td, schedule.radius_px[r] * max(scale, 0.25),
                                     schedule.descriptor_threshold[r], schedule.ratio)
         w = np.clip(1.0 - dist / schedule.descriptor_threshold[r], 0.05, 1.0)
-        out.append(lift_matches(source, v, sp[si], tp[ti], tgt, w, "sparse", estimate=estimate,
-                                max_prediction_error_mm=max_prediction_error_mm,
-                                surface=(tri[si], bary[si], okp[si])))
-    return concat(out, "sparse")
+        return lift_matches(source, v, sp[si], tp[ti], tgt, w, "sparse", estimate=estimate,
+                            max_prediction_error_mm=max_prediction_error_mm,
+                            surface=(tri[si], bary[si], okp[si]))
+
+    return concat(map_views(view_matches, len(targets), workers), "sparse")
