@@ -280,12 +280,12 @@ def surface_neighbours(vertices: np.ndarray, faces: np.ndarray, sources: np.ndar
     vertices (V, 3) mm, faces (F, 3), sources (S,) vertex ids. Returns neighbours (S, k) indices into
     ``sources`` (-1 where fewer than k lie within ``limit_mm``) and their distances (S, k) mm (inf there).
     """
+    import igl
     import scipy.sparse as sp
     from scipy.sparse.csgraph import dijkstra
 
     V = np.asarray(vertices, np.float64)
-    F = np.asarray(faces, np.int64)
-    e = np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0)
+    e = np.asarray(igl.edges(np.asarray(faces, np.int64)), np.int64)  # unique undirected edges
     w = np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1)
     G = sp.coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(V.shape[0],) * 2).tocsr()
     src = np.asarray(sources, np.int64)

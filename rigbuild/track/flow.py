@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from rigbuild.track.features import sample_bilinear
 from rigbuild.track.matches import Matches, Source, ViewFrame, concat, lift_matches, map_views
 
 
@@ -65,11 +66,12 @@ def m_at(guide: np.ndarray, flow: np.ndarray) -> np.ndarray:
     return cv2.remap(guide, gx + flow[..., 0], gy + flow[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
-def residual_flow(src_gray: np.ndarray, warped_gray: np.ndarray, preset: str, scale: float = 1.0
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def residual_flow(src_gray: np.ndarray, warped_gray: np.ndarray, preset: str, scale: float = 1.0,
+                  backward: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """DIS flow (H, W, 2) px from ``src_gray`` to the guide-warped target and its forward-backward error
     (H, W) px. ``scale`` < 1 computes the flow on images resized by ``scale`` (the residual after the guide
-    is small and smooth) and brings it back to full resolution."""
+    is small and smooth) and brings it back to full resolution. ``backward=False`` skips the backward flow
+    (the error is then None)."""
     H, W = src_gray.shape
     if scale < 1.0:
         size = (max(int(round(W * scale)), 8), max(int(round(H * scale)), 8))
@@ -79,14 +81,17 @@ def residual_flow(src_gray: np.ndarray, warped_gray: np.ndarray, preset: str, sc
         a, b = src_gray, warped_gray
     dis = cv2.DISOpticalFlow_create(_PRESETS[preset])
     fwd = dis.calc(a, b, None)
-    bwd = dis.calc(b, a, None)
     h, w = a.shape
-    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    bx = cv2.remap(bwd, gx + fwd[..., 0], gy + fwd[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    fb = np.linalg.norm(fwd + bx, axis=2)
+    fb = None
+    if backward:
+        bwd = dis.calc(b, a, None)
+        gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+        bx = cv2.remap(bwd, gx + fwd[..., 0], gy + fwd[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        fb = np.linalg.norm(fwd + bx, axis=2)
     if scale < 1.0:
         fwd = cv2.resize(fwd, (W, H), interpolation=cv2.INTER_LINEAR) * np.float32(W / w)
-        fb = cv2.resize(fb, (W, H), interpolation=cv2.INTER_LINEAR) * np.float32(W / w)
+        if fb is not None:
+            fb = cv2.resize(fb, (W, H), interpolation=cv2.INTER_LINEAR) * np.float32(W / w)
     return fwd, fb
 
 
@@ -106,9 +111,7 @@ def points_flow(src_gray: np.ndarray, tgt_gray: np.ndarray, points: np.ndarray, 
     if x1 - x0 < 8 or y1 - y0 < 8:
         return out
     flow, _ = residual_flow(np.ascontiguousarray(src_gray[y0:y1, x0:x1]),
-                            np.ascontiguousarray(tgt_gray[y0:y1, x0:x1]), preset, scale)
-    from rigbuild.track.features import sample_bilinear
-
+                            np.ascontiguousarray(tgt_gray[y0:y1, x0:x1]), preset, scale, backward=False)
     q = pts[ok] - [x0, y0]
     out[ok, 0] = sample_bilinear(np.ascontiguousarray(flow[..., 0]), q)
     out[ok, 1] = sample_bilinear(np.ascontiguousarray(flow[..., 1]), q)

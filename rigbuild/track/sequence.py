@@ -278,16 +278,12 @@ class SequenceTracker:
         90 px) is otherwise assigned to its neighbour's detection.
         """
         pred3 = estimate[self.marker_local]
-        out = np.full((len(frames), pred3.shape[0], 2), np.nan)
 
         def view(c: int) -> np.ndarray:
-            cam = frames[c].camera
-            uv = cam.project(pred3)
+            uv = frames[c].camera.project(pred3)
             return uv + points_flow(previous.views[c].frame.gray, frames[c].gray, uv, scale=self.p.dot_flow_scale)
 
-        for c, uv in enumerate(map_views(view, len(frames), self.p.workers)):
-            out[c] = uv
-        return out
+        return np.stack(map_views(view, len(frames), self.p.workers))
 
     def _robust_rigid(self, m: Matches, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         """Trimmed Kabsch of the matches' current positions onto their targets: R, t, inlier RMS (mm)."""
