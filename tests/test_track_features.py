@@ -41,6 +41,24 @@ def test_detect_dots_finds_grey_discs_not_reddish_speckle():
     np.testing.assert_allclose(det[a], centres, atol=0.3)
 
 
+def test_detect_dots_on_the_mask_box_equals_the_whole_image():
+    rng = np.random.default_rng(1)
+    img = np.empty((200, 260, 3), np.float32)
+    img[:] = (198, 148, 122)
+    for x, y in rng.uniform([60, 50], [200, 150], (12, 2)):
+        cv2.circle(img, (int(x), int(y)), 4, (25, 25, 25), -1)
+    img = np.clip(img + rng.normal(0, 1.5, img.shape), 0, 255).astype(np.uint8)
+    mask = np.zeros(img.shape[:2], bool)
+    mask[55:150, 70:190] = True  # cuts some dots
+    boxed = detect_dots(img, DotParams(), mask=mask)
+    whole = mask.copy()
+    whole[0, 0] = whole[-1, -1] = True  # the mask's box is the whole image: no crop (lone pixels are no dots)
+    full = detect_dots(img, DotParams(), mask=whole)
+    assert boxed[0].shape[0] >= 6
+    np.testing.assert_allclose(boxed[0], full[0], rtol=0, atol=1e-9)  # centroids summed in crop coordinates
+    np.testing.assert_array_equal(boxed[1], full[1])
+
+
 def test_assign_detections_gates_and_rejects_ambiguous():
     pred = np.array([[0, 0], [10, 0], [50, 50], [np.nan, np.nan]], float)
     det = np.array([[0.5, 0], [10, 1], [80, 80], [52, 50], [53, 50]])

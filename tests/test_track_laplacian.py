@@ -78,6 +78,19 @@ def test_fit_vertex_rotations_recovers_rigid_rotation():
     np.testing.assert_allclose(Rv, np.broadcast_to(R, Rv.shape), atol=1e-10)
 
 
+def test_rotations_from_covariances_threaded_blocks_equal_single_and_fix_reflections():
+    from rigbuild.track.laplacian import rotations_from_covariances
+
+    rng = np.random.default_rng(4)
+    S = rng.normal(size=(5000, 3, 3))
+    R1 = rotations_from_covariances(S, workers=1)
+    np.testing.assert_array_equal(rotations_from_covariances(S, workers=2), R1)
+    np.testing.assert_allclose(np.linalg.det(R1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(R1 @ R1.transpose(0, 2, 1), np.broadcast_to(np.eye(3), S.shape), atol=1e-12)
+    # a reflection (det -1) is turned into the closest proper rotation: diag(1, 1, -1) -> identity
+    np.testing.assert_allclose(rotations_from_covariances(np.diag([3.0, 2.0, -1.0])[None]), np.eye(3)[None], atol=1e-12)
+
+
 def test_solve_translation_exact_with_all_vertices_constrained():
     V, F = grid_mesh(5, 8.0, bump=2.0)
     solver = LaplacianSolver(V, F)

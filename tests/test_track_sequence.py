@@ -143,3 +143,21 @@ def test_map_views_keeps_the_view_order():
 
     assert map_views(lambda v: v * v, 7, workers=3) == [0, 1, 4, 9, 16, 25, 36]
     assert map_views(lambda v: v, 0, workers=2) == []
+
+
+def test_match_confidence_is_relative_to_the_frames_median_match_weight():
+    import scipy.sparse as sp
+
+    from rigbuild.track.matches import Matches
+    from rigbuild.track.sequence import match_confidence
+
+    # a path of 4 vertices (ring = self + neighbours) and 2 triangles; matches at vertex corners
+    faces = np.array([[0, 1, 2], [1, 2, 3]])
+    ring = sp.csr_matrix(np.array([[1, 1, 0, 0], [1, 1, 1, 0], [0, 1, 1, 1], [0, 0, 1, 1]], float))
+    tri = np.array([0, 0, 1])
+    bary = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])  # on vertices 0, 1, 3
+    m = Matches(tri, bary, np.zeros((3, 3)), np.array([2.0, 1.0, 4.0]), np.zeros(3, np.int64), "flow")
+    s = np.array([3.0, 3.0, 5.0, 4.0])  # ring sums of the per-vertex weights (2, 1, 0, 4)
+    c = match_confidence(ring, faces, m, scale=0.5)
+    np.testing.assert_allclose(c, 1 - np.exp(-s / (0.5 * 3.5)), atol=1e-12)
+    assert np.all(match_confidence(ring, faces, Matches.empty("flow"), 0.5) == 0)

@@ -40,11 +40,22 @@ def detect_dots(image_rgb: np.ndarray, params: DotParams | None = None, mask: np
     Returns centres (N, 2) float64 px (OpenCV pixel centres, darkness-weighted centroids) and areas (N,).
     """
     p = params or DotParams()
-    img = np.asarray(image_rgb, dtype=np.float32)
-    if img.ndim != 3 or img.shape[2] != 3:
+    if np.ndim(image_rgb) != 3 or np.shape(image_rgb)[2] != 3:
         raise ValueError("detect_dots expects an (H, W, 3) RGB image")
+    if mask is not None:  # work on the mask's box, padded past the blur and background filters' reach
+        rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+        if rows.size == 0:
+            return np.zeros((0, 2)), np.zeros(0)
+        pad = p.background_px + int(np.ceil(4 * p.blur_sigma)) + 2
+        H, W = mask.shape
+        y0, y1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, H)
+        x0, x1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, W)
+        if (y0, y1, x0, x1) != (0, H, 0, W):
+            c, a = detect_dots(np.asarray(image_rgb)[y0:y1, x0:x1], p, mask[y0:y1, x0:x1])
+            return c + [x0, y0], a
+    img = np.asarray(image_rgb, dtype=np.float32)
     b = cv2.GaussianBlur(img, (0, 0), p.blur_sigma) if p.blur_sigma > 0 else img
-    mx = b.max(axis=2)
+    mx = np.maximum(np.maximum(b[..., 0], b[..., 1]), b[..., 2])
     bg = cv2.dilate(mx, np.ones((p.background_px, p.background_px), np.uint8))
     cand = (mx < p.darkness * bg) & ((b[..., 0] - b[..., 2]) < p.chroma * bg) & (bg > 20)
     if mask is not None:
@@ -81,20 +92,21 @@ def _pixel_cells(shape: tuple[int, int], uv: np.ndarray):
 
 def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear sample of a (H, W) float image at pixels uv (N, 2); NaN outside or next to NaN."""
-    img = np.asarray(image, dtype=np.float64)
+    img = np.asarray(image)  # indexed first, converted after (no full-image float64 copy per call)
     ok, u0, v0, du, dv = _pixel_cells(img.shape, uv)
     out = np.full(ok.shape, np.nan)
-    out[ok] = ((1 - du) * (1 - dv) * img[v0, u0] + du * (1 - dv) * img[v0, u0 + 1]
-               + (1 - du) * dv * img[v0 + 1, u0] + du * dv * img[v0 + 1, u0 + 1])
+    c00, c01 = img[v0, u0].astype(np.float64), img[v0, u0 + 1].astype(np.float64)
+    c10, c11 = img[v0 + 1, u0].astype(np.float64), img[v0 + 1, u0 + 1].astype(np.float64)
+    out[ok] = (1 - du) * (1 - dv) * c00 + du * (1 - dv) * c01 + (1 - du) * dv * c10 + du * dv * c11
     return out
 
 
 def depth_discontinuity(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Max minus min of the 2x2 depth neighbourhood at uv (N,) (mm); NaN where any is NaN/outside."""
-    d = np.asarray(depth, dtype=np.float64)
+    d = np.asarray(depth)
     ok, u0, v0, _, _ = _pixel_cells(d.shape, uv)
     out = np.full(ok.shape, np.nan)
-    n = np.stack([d[v0, u0], d[v0, u0 + 1], d[v0 + 1, u0], d[v0 + 1, u0 + 1]], axis=1)
+    n = np.stack([d[v0, u0], d[v0, u0 + 1], d[v0 + 1, u0], d[v0 + 1, u0 + 1]], axis=1).astype(np.float64)
     out[ok] = n.max(1) - n.min(1)
     return out
 

@@ -15,7 +15,16 @@ import cv2
 import numpy as np
 
 from rigbuild.track.features import sample_bilinear
-from rigbuild.track.matches import Matches, Source, ViewFrame, concat, lift_matches, map_views
+from rigbuild.track.matches import (
+    Matches,
+    Source,
+    SourcePoints,
+    SourceView,
+    ViewFrame,
+    concat,
+    lift_matches,
+    map_views,
+)
 
 
 @dataclass
@@ -32,6 +41,7 @@ class FlowParams:
     max_fb_px: float = 1.5
     motion_step: int = 4
     scale: float = 1.0
+    patch_stride: int = 4
 
 
 _PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
@@ -67,7 +77,7 @@ def m_at(guide: np.ndarray, flow: np.ndarray) -> np.ndarray:
 
 
 def residual_flow(src_gray: np.ndarray, warped_gray: np.ndarray, preset: str, scale: float = 1.0,
-                  backward: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+                  backward: bool = True, patch_stride: int = 0) -> tuple[np.ndarray, np.ndarray | None]:
     """DIS flow (H, W, 2) px from ``src_gray`` to the guide-warped target and its forward-backward error
     (H, W) px. ``scale`` < 1 computes the flow on images resized by ``scale`` (the residual after the guide
     is small and smooth) and brings it back to full resolution. ``backward=False`` skips the backward flow
@@ -80,6 +90,8 @@ def residual_flow(src_gray: np.ndarray, warped_gray: np.ndarray, preset: str, sc
     else:
         a, b = src_gray, warped_gray
     dis = cv2.DISOpticalFlow_create(_PRESETS[preset])
+    if patch_stride > 0:
+        dis.setPatchStride(int(patch_stride))
     fwd = dis.calc(a, b, None)
     h, w = a.shape
     fb = None
@@ -87,7 +99,8 @@ def residual_flow(src_gray: np.ndarray, warped_gray: np.ndarray, preset: str, sc
         bwd = dis.calc(b, a, None)
         gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
         bx = cv2.remap(bwd, gx + fwd[..., 0], gy + fwd[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        fb = np.linalg.norm(fwd + bx, axis=2)
+        e = fwd + bx
+        fb = cv2.magnitude(np.ascontiguousarray(e[..., 0]), np.ascontiguousarray(e[..., 1]))
     if scale < 1.0:
         fwd = cv2.resize(fwd, (W, H), interpolation=cv2.INTER_LINEAR) * np.float32(W / w)
         if fb is not None:
@@ -118,6 +131,18 @@ def points_flow(src_gray: np.ndarray, tgt_gray: np.ndarray, points: np.ndarray, 
     return out
 
 
+def flow_grid(sv: SourceView, box: tuple[int, int, int, int], step: int) -> tuple[np.ndarray, SourcePoints]:
+    """The dense level's source pixels of one view: the grid ``box`` origin + ``step // 2`` + ``step`` k
+    (uv (gy, gx, 2) px) and their anchors on the source mesh, cached on the view (the anchor source is
+    matched on every frame of a sequence; its grid is anchored once). The surface points come from the
+    motion field's grid where that grid contains this one."""
+    key = ("flow_grid", tuple(int(b) for b in box), step)
+    if key not in sv.cache:
+        grid, tri, bary, ok = sv.grid_surface_points(key[1], step, offset=step // 2)
+        sv.cache[key] = (grid, sv.anchored(grid.reshape(-1, 2), surface=(tri, bary, ok)))
+    return sv.cache[key]
+
+
 def flow_matches(source: Source, targets: list[ViewFrame], estimate: np.ndarray, params: FlowParams,
                  max_prediction_error_mm: float = 3.0, workers: int = 1) -> Matches:
     """Dense guided-flow matches source -> target in every view, lifted to barycentric constraints.
@@ -137,16 +162,19 @@ def flow_matches(source: Source, targets: list[ViewFrame], estimate: np.ndarray,
         gx, gy = np.meshgrid(np.arange(x0, x1, dtype=np.float32), np.arange(y0, y1, dtype=np.float32))
         m = np.nan_to_num(motion, nan=0.0).astype(np.float32)
         warped = cv2.remap(tgt.gray, gx + m[..., 0], gy + m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        flow, fb = residual_flow(np.ascontiguousarray(sv.frame.gray[y0:y1, x0:x1]), warped, params.preset, params.scale)
+        flow, fb = residual_flow(np.ascontiguousarray(sv.frame.gray[y0:y1, x0:x1]), warped, params.preset, params.scale,
+                                  patch_stride=params.patch_stride)
         flow = flow + m_at(m, flow)  # total = residual + guide at the residually displaced position
         step = max(2, int(round(params.grid_px * tgt.camera.width / 1280.0)))
-        ys, xs = np.mgrid[step // 2:y1 - y0:step, step // 2:x1 - x0:step]
-        sel = np.isfinite(motion[ys, xs, 0]) & np.isfinite(sv.frame.depth[ys + y0, xs + x0]) & (fb[ys, xs] <= params.max_fb_px)
-        xs, ys = xs[sel], ys[sel]
-        src_uv = np.stack([xs + x0, ys + y0], 1).astype(np.float64)
-        tgt_uv = src_uv + flow[ys, xs].astype(np.float64)
+        grid, anchored = flow_grid(sv, box, step)
+        xs = grid[..., 0].astype(np.int64).ravel() - x0
+        ys = grid[..., 1].astype(np.int64).ravel() - y0
+        sel = np.isfinite(motion[ys, xs, 0]) & (fb[ys, xs] <= params.max_fb_px) & anchored.ok
+        idx = np.flatnonzero(sel)
+        xs, ys = xs[idx], ys[idx]
+        tgt_uv = grid.reshape(-1, 2)[idx] + flow[ys, xs].astype(np.float64)
         w = np.exp(-fb[ys, xs].astype(np.float64) ** 2 / (2 * params.fb_sigma_px ** 2))
-        return lift_matches(source, v, src_uv, tgt_uv, tgt, w, "flow", estimate=estimate,
+        return lift_matches(source, v, anchored.subset(idx), tgt_uv, tgt, w, "flow", estimate=estimate,
                             max_prediction_error_mm=max_prediction_error_mm)
 
     out = [m for m in map_views(view_matches, len(targets), workers) if m is not None]

@@ -131,19 +131,44 @@ def cotangent_laplacian(vertices: np.ndarray, faces: np.ndarray) -> sp.csc_matri
 
 
 def fit_vertex_rotations(
-    rest: np.ndarray, current: np.ndarray, edges: np.ndarray, edge_weights: np.ndarray
+    rest: np.ndarray, current: np.ndarray, edges: np.ndarray, edge_weights: np.ndarray, workers: int = 1
 ) -> np.ndarray:
     """Per-vertex rotations (V, 3, 3) best mapping the rest 1-ring edges onto the current ones (ARAP local step).
 
     rest, current : (V, 3); edges : (E, 2) directed vertex pairs (i, j) (both directions listed);
     edge_weights : (E,) non-negative weights. ``R_i = argmin sum_j w_ij ||R (r_j - r_i) - (p_j - p_i)||^2``.
+    ``workers`` threads share the SVDs.
     """
     i, j = edges[:, 0], edges[:, 1]
-    e0 = rest[j] - rest[i]
-    e1 = current[j] - current[i]
-    outer = (edge_weights[:, None, None] * e1[:, :, None] * e0[:, None, :]).reshape(-1, 9)  # sum w p r^T
-    V = rest.shape[0]
-    S = np.stack([np.bincount(i, weights=outer[:, k], minlength=V) for k in range(9)], axis=1).reshape(V, 3, 3)
+    e0 = (rest[j] - rest[i]) * edge_weights[:, None]
+    return rotations_from_covariances(edge_covariances(np.asarray(current, dtype=np.float64), edges, e0,
+                                                       vertex_edge_incidence(edges, rest.shape[0])), workers)
+
+
+def vertex_edge_incidence(edges: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """(V, E) 0/1 matrix summing the directed edges (E, 2) over their first vertex."""
+    E = edges.shape[0]
+    return sp.csr_matrix((np.ones(E), (edges[:, 0], np.arange(E))), shape=(n_vertices, E))
+
+
+def edge_covariances(current: np.ndarray, edges: np.ndarray, weighted_rest_edges: np.ndarray,
+                     incidence: sp.csr_matrix) -> np.ndarray:
+    """Per-vertex ``S_i = sum_j (p_j - p_i) (w_ij (r_j - r_i))^T`` (V, 3, 3); weighted_rest_edges (E, 3),
+    incidence from :func:`vertex_edge_incidence`."""
+    e1 = current[edges[:, 1]] - current[edges[:, 0]]
+    outer = (e1[:, :, None] * weighted_rest_edges[:, None, :]).reshape(-1, 9)
+    return np.asarray(incidence @ outer).reshape(-1, 3, 3)
+
+
+def rotations_from_covariances(S: np.ndarray, workers: int = 1) -> np.ndarray:
+    """Closest rotations (V, 3, 3) to S (V, 3, 3) (``U W^T`` of the SVD, last column of U flipped where that
+    is a reflection). ``workers`` threads take contiguous blocks (LAPACK releases the GIL)."""
+    if workers > 1 and S.shape[0] >= 2048:
+        from concurrent.futures import ThreadPoolExecutor
+
+        blocks = np.array_split(S, workers)
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            return np.concatenate(list(pool.map(rotations_from_covariances, blocks)))
     U, _, Wt = np.linalg.svd(S)
     d = np.sign(np.linalg.det(U @ Wt))
     d[d == 0] = 1.0
@@ -201,6 +226,9 @@ class LaplacianSolver:
         off = Lc.row != Lc.col
         self.edges = np.stack([Lc.row[off], Lc.col[off]], axis=1)
         self.edge_weights = np.maximum(-Lc.data[off], 1e-6)
+        self._incidence = vertex_edge_incidence(self.edges, self.n)
+        self._rest_edges_w = (self.rest[self.edges[:, 1]] - self.rest[self.edges[:, 0]]) * self.edge_weights[:, None]
+        self.workers = 1  # threads of the rotation fits (rotated_delta)
 
     # -------------------------------------------------------------- internals
     def _scatter_values(self, coo: sp.coo_matrix) -> np.ndarray:
@@ -220,7 +248,8 @@ class LaplacianSolver:
     # -------------------------------------------------------------- public
     def rotated_delta(self, current: np.ndarray) -> np.ndarray:
         """Rest Laplacian coordinates rotated by per-vertex rotations fitted to ``current`` (V, 3)."""
-        R = fit_vertex_rotations(self.rest, np.asarray(current, dtype=np.float64), self.edges, self.edge_weights)
+        S = edge_covariances(np.asarray(current, dtype=np.float64), self.edges, self._rest_edges_w, self._incidence)
+        R = rotations_from_covariances(S, self.workers)
         return np.einsum("vij,vj->vi", R, self.delta_rest)
 
     def solve(

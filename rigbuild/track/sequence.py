@@ -27,7 +27,7 @@ from rigbuild.track.flow import FlowParams, flow_matches, points_flow
 from rigbuild.track.laplacian import LaplacianSolver, vertex_normals
 from rigbuild.track.matches import Matches, Source, ViewFrame, concat, map_views
 from rigbuild.track.register import RayObservations
-from rigbuild.track.sparse import SparseSchedule, sparse_matches
+from rigbuild.track.sparse import SparseSchedule, sift_features, sparse_matches
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +66,8 @@ class TrackParams:
         scale of that flow.
     workers : threads that share the views of the image levels (SIFT, matching, flow, lifting); the
         snakemake rule passes its ``threads``.
+    confidence_scale : the per-vertex confidence (:meth:`SequenceTracker.confidence`) reaches 1 - 1/e where
+        the match weight on the vertex is this fraction of the frame's median.
     """
 
     levels: tuple[str, ...] = LEVELS
@@ -91,6 +93,7 @@ class TrackParams:
     dot_neighbours: int = 5
     dot_flow: bool = True
     dot_flow_scale: float = 0.5
+    confidence_scale: float = 0.5
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "TrackParams":
@@ -222,6 +225,7 @@ class SequenceTracker:
         self.faces = np.asarray(faces, dtype=np.int64)
         self.marker_local = np.asarray(marker_local, dtype=np.int64)
         self.solver = LaplacianSolver(self.neutral, self.faces)
+        self.solver.workers = self.p.workers
         if vertex_tri is None:
             vertex_tri = np.full(self.neutral.shape[0], -1, np.int64)
             vertex_corner = np.zeros(self.neutral.shape[0], np.int64)
@@ -334,12 +338,33 @@ class SequenceTracker:
                 path="session.yaml", fix=f"set rom[{sequence}].neutral_frame to a frame where the actor is at rest")
         return apply_rigid(self.neutral, R, t)
 
+    def _prefetch_detections(self, frames: list[ViewFrame]):
+        """Detect the frame's painted dots (all views at once) and, with ``workers`` > 1, start its SIFT
+        features in the background while the (serial) dot level runs. Returns a function that waits for the
+        SIFT features (the detections are cached on the frames)."""
+        if "features" in self.p.levels:
+            map_views(lambda c: frame_dots(frames[c], self.p.dots), len(frames), self.p.workers)
+        if "sparse" not in self.p.levels or self.p.workers <= 1:
+            return lambda: None
+        from concurrent.futures import ThreadPoolExecutor
+
+        pool = ThreadPoolExecutor(max_workers=max(self.p.workers - 1, 1))
+        jobs = [pool.submit(sift_features, f, self.p.sparse) for f in frames]
+        pool.shutdown(wait=False)
+
+        def wait() -> None:
+            for j in jobs:
+                j.result()
+
+        return wait
+
     def track_frame(self, frames: list[ViewFrame], estimate: np.ndarray, sources: list[Source], frame: int
                     ) -> tuple[np.ndarray, FrameStats, Matches]:
         """Register the tracking mesh to one target frame, coarse to fine. Returns vertices (T, 3), stats and
         the final constraint set."""
         st = FrameStats(frame)
         p = estimate.copy()
+        sift_ready = self._prefetch_detections(frames)
         dots = Matches.empty("features")
         if "features" in self.p.levels:
             for k, r in enumerate(self.p.dot_radius_px):
@@ -364,6 +389,7 @@ class SequenceTracker:
             st.dots = dots.n
         sparse = Matches.empty("sparse")
         if "sparse" in self.p.levels:
+            sift_ready()
             sch = self.p.sparse
             for k in range(len(sch.radius_px)):
                 parts = []
@@ -449,15 +475,32 @@ class SequenceTracker:
                 sources_prev = Source.build(p, self.faces, frames, "previous")
         return np.stack(out), np.stack(conf), stats
 
-    def confidence(self, m: Matches, lost: bool = False, scale: float = 1.0) -> np.ndarray:
-        """Per-vertex confidence (T,) = 1 - exp(-(sum of match weights touching the vertex's 1-ring) / scale)."""
-        T = self.neutral.shape[0]
-        if lost or m.n == 0:
-            return np.zeros(T)
-        s = np.zeros(T)
-        for k in range(3):
-            np.add.at(s, self.faces[m.tri, k], m.weights * m.bary[:, k])
-        ring = self.solver.L.copy()
-        ring.data = np.abs(ring.data) > 0
-        s = ring.T @ s
-        return 1.0 - np.exp(-s / scale)
+    def confidence(self, m: Matches, lost: bool = False) -> np.ndarray:
+        """Per-vertex confidence (T,) of a frame's final constraints (:func:`match_confidence`); 0 on a lost frame."""
+        if lost:
+            return np.zeros(self.neutral.shape[0])
+        if not hasattr(self, "_ring"):
+            self._ring = self.solver.L.copy()
+            self._ring.data = (np.abs(self._ring.data) > 0).astype(np.float64)
+        return match_confidence(self._ring, self.faces, m, self.p.confidence_scale)
+
+
+def match_confidence(ring, faces: np.ndarray, m: Matches, scale: float) -> np.ndarray:
+    """Per-vertex confidence (T,) in [0, 1]: ``1 - exp(-s / (scale * median s))`` with ``s`` the match weight
+    (quality x barycentric share) landing on the vertex's 1-ring (``ring`` (T, T) 0/1 with the diagonal, e.g.
+    the Laplacian's pattern; faces (F, 3)) and the median over the vertices that have any; 0 where none lands.
+
+    ``s`` says how well the images pin the vertex down; measured on the ICT tier (rom05, all frames, the
+    observed face): mean error 0.78 mm where s < 7, 0.37 mm at s 22-44, 0.17 mm above 110 (median 87;
+    Spearman correlation of error and s -0.55). A fixed scale of 1 (before) saturated at 1 everywhere."""
+    T = ring.shape[0]
+    if m.n == 0:
+        return np.zeros(T)
+    s = np.zeros(T)
+    for k in range(3):
+        np.add.at(s, faces[m.tri, k], m.weights * m.bary[:, k])
+    s = ring.T @ s
+    pos = s[s > 0]
+    if pos.size == 0:
+        return np.zeros(T)
+    return 1.0 - np.exp(-s / (scale * float(np.median(pos))))
