@@ -11,7 +11,7 @@ from rigbuild.errors import InputError
 from rigbuild.io.atomic import save_npz
 from rigbuild.io.gltf import read_gltf_rig
 from rigbuild.io.rigs import read_obj_folder_rig, read_rig_npz, write_rig_npz
-from rigbuild.personalize.stage import run_personalization, split_params
+from rigbuild.personalize.stage import neutral_frame_mask, run_personalization, split_params
 from rigbuild.rig import Rig
 
 from test_personalize_em import scene
@@ -128,3 +128,12 @@ def test_tracks_in_a_rotated_world_get_rotated_initial_shapes(tmp_path):
     cos = [float(np.sum(a * b) / (np.linalg.norm(a) * np.linalg.norm(b))) for a, b in zip(initial.deltas, Dw)]
     assert min(cos) > 0.97, cos
     assert m["residual_reduction"] >= 0.5
+
+
+def test_neutral_frame_mask_marks_each_sequences_named_neutral_frame():
+    data = {"a": {"vertices": np.zeros((4, 2, 3)), "frames": np.array([10, 11, 12, 13])},
+            "b": {"vertices": np.zeros((3, 2, 3)), "frames": None},
+            "c": {"vertices": np.zeros((2, 2, 3)), "frames": np.array([0, 1])}}
+    m = neutral_frame_mask(data, ["a", "b", "c"], {"a": 11, "b": 0})
+    np.testing.assert_array_equal(m, [False, True, False, False, True, False, False, False, False])
+    assert not neutral_frame_mask(data, ["a"], None).any()

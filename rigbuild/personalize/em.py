@@ -65,6 +65,13 @@ class PersonalizeParams:
         shape is scaled by its peak weight once more (weights divided by it: the fit is unchanged).
     gauge_max_weight : the relaxed upper bound of the gauge fit (largest amplitude ratio actor / D*
         that can be measured).
+    pin_neutral_frames : frames the session names as the actor's neutral (each ROM sequence's
+        ``neutral_frame``, passed as ``neutral_mask``) keep all weights at 0 and fit the rigid motion only
+        (not in the paper, whose EM leaves them free). The neutral update and "always on" weights are
+        otherwise interchangeable: ``d_0`` plus a constant weight on a shape fits every frame as well as
+        ``d_0`` alone, and on tracked frames the EM drifted into that (ICT tier: the personalized rig fitted
+        the sequences' own neutral frames with eyeLookOut_R at 0.42, eyeLookUp_L 0.36; 0.34 mm RMS where
+        the D* rig fits them to 0.06 mm). Pinning the frames that are known to be neutral anchors ``d_0``.
     """
 
     lambda_s: float = 0.1
@@ -83,6 +90,7 @@ class PersonalizeParams:
     qp_method: str = "active_set"
     gauge: str = "none"
     gauge_max_weight: float = 3.0
+    pin_neutral_frames: bool = True
 
 
 GAUGES = ("none", "rom_peak")
@@ -186,6 +194,7 @@ class FrameFitter:
         self.conf = np.sqrt(conf2)
         self.qp_times: list[float] = []
         self.hi = 1.0  # upper bound of the weights (relaxed only to measure the ROM gauge)
+        self.pinned = np.zeros(len(kept), dtype=bool)  # frames whose weights are fixed at 0 (neutral frames)
 
     def set_rig(self, neutral_a: np.ndarray, deltas_a: np.ndarray) -> None:
         self.n0 = neutral_a
@@ -264,6 +273,10 @@ class FrameFitter:
         rotation move less than ``weight_tol`` (at most ``inner_iterations``), then one exact block
         step of each: weighted Kabsch for (R, t), the box QP for w. Energy never increases."""
         p = self.p
+        if self.pinned[i]:  # a neutral frame: weights 0, rigid motion only
+            W[i] = 0.0
+            R[i], t[i] = fit_frame_rigid(self.model(W[i]), self.frames[i], self.conf[i])
+            return
         obs = self.observable
         m3 = np.repeat(self.conf2[i], 3)
         gram = self.gram(i)[np.ix_(obs, obs)]
@@ -324,13 +337,13 @@ class FrameFitter:
 def fit_weights_and_rigid(neutral: np.ndarray, deltas: np.ndarray, frames: np.ndarray,
                           confidence: np.ndarray | None = None, sequence_ids: np.ndarray | None = None,
                           params: PersonalizeParams | None = None, vertices: np.ndarray | None = None,
-                          sweeps: int = 10) -> dict:
+                          sweeps: int = 10, neutral_mask: np.ndarray | None = None) -> dict:
     """Fit weights and rigid motion to frames with a fixed rig (used for held-out frames).
 
     neutral (V, 3), deltas (K, V, 3), frames (F, V, 3) mm; confidence (F, V) or None; vertices:
-    restrict to these ids (default: confident vertices). Sweeps of block-coordinate descent until
-    the energy drops by less than ``params.tolerance``. Returns dict with weights (F, K), rotations,
-    translations, rms_mm, energy.
+    restrict to these ids (default: confident vertices); neutral_mask (F,) bool: the actor's neutral frames
+    (weights 0 with ``params.pin_neutral_frames``). Sweeps of block-coordinate descent until the energy drops
+    by less than ``params.tolerance``. Returns dict with weights (F, K), rotations, translations, rms_mm, energy.
     """
     p = params or PersonalizeParams()
     conf = check_inputs(neutral, deltas, frames, confidence)
@@ -338,6 +351,7 @@ def fit_weights_and_rigid(neutral: np.ndarray, deltas: np.ndarray, frames: np.nd
         vertices = np.flatnonzero((conf > p.confidence_threshold).any(0))
     kept = (conf[:, vertices] > p.confidence_threshold).sum(1) >= min(p.min_confident_vertices, len(vertices))
     fit = FrameFitter(p, frames[:, vertices], conf[:, vertices] ** 2, contiguity(sequence_ids, kept), kept)
+    fit.pinned = pinned_frames(neutral_mask, frames.shape[0], p)
     fit.set_rig(neutral[vertices], deltas[:, vertices])
     F, K = frames.shape[0], deltas.shape[0]
     W = np.zeros((F, K))
@@ -353,6 +367,16 @@ def fit_weights_and_rigid(neutral: np.ndarray, deltas: np.ndarray, frames: np.nd
         prev = J
     W[~kept] = np.nan
     return {"weights": W, "rotations": R, "translations": t, "rms_mm": e["rms_mm"], "energy": J, "kept": kept}
+
+
+def pinned_frames(neutral_mask: np.ndarray | None, n_frames: int, params: PersonalizeParams) -> np.ndarray:
+    """(F,) bool: the frames whose weights are fixed at 0 (``neutral_mask`` when ``pin_neutral_frames``)."""
+    if neutral_mask is None or not params.pin_neutral_frames:
+        return np.zeros(n_frames, dtype=bool)
+    m = np.asarray(neutral_mask, dtype=bool).reshape(-1)
+    if m.size != n_frames:
+        raise InputError(f"neutral_mask has {m.size} entries for {n_frames} frames")
+    return m
 
 
 # ---------------------------------------------------------------------------- EM
@@ -379,6 +403,7 @@ def personalize(
     fit_vertices: np.ndarray | None = None,
     initial_weights: np.ndarray | None = None,
     initial_rigid: tuple[np.ndarray, np.ndarray] | None = None,
+    neutral_mask: np.ndarray | None = None,
 ) -> PersonalizationResult:
     """Personalize the blendshapes ``D*`` to tracked frames (Ma et al. 2016).
 
@@ -399,6 +424,8 @@ def personalize(
         start from (e.g. a previous personalization). With both given, EM starts with a shapes step
         (``residual_initial_mm`` is then the fit with these weights); with weights only, the first
         weights step starts from them.
+    neutral_mask : (N,) bool, the frames that show the actor's neutral (each ROM sequence's neutral frame):
+        their weights stay 0 (``params.pin_neutral_frames``).
 
     Returns
     -------
@@ -464,6 +491,7 @@ def personalize(
     Ds_a = Dstar[:, active]
 
     fit = FrameFitter(p, frames_a, conf2, contiguity(sequence_ids, kept), kept)
+    fit.pinned = pinned_frames(neutral_mask, frames.shape[0], p)
     unobs = None
     Nf = frames.shape[0]
     W = np.zeros((Nf, K)) if initial_weights is None else np.clip(np.nan_to_num(initial_weights), 0, 1).copy()

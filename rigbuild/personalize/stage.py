@@ -69,6 +69,19 @@ def read_tracked_sequence(path: str | os.PathLike, n_vertices: int) -> dict:
     return {"vertices": v, "confidence": np.clip(conf, 0.0, None), "frames": frames}
 
 
+def neutral_frame_mask(data: Mapping[str, dict], names: list[str], neutral_frames: Mapping[str, int] | None
+                       ) -> np.ndarray:
+    """(N,) bool over the concatenated frames of sequences ``names``: the frame each sequence names as its
+    neutral (``neutral_frames[sequence]``, a session frame number; sequences without one have none)."""
+    out = []
+    for s in names:
+        n = data[s]["vertices"].shape[0]
+        fr = data[s]["frames"] if data[s]["frames"] is not None else np.arange(n)
+        nf = (neutral_frames or {}).get(s)
+        out.append(np.zeros(n, dtype=bool) if nf is None else np.asarray(fr) == int(nf))
+    return np.concatenate(out) if out else np.zeros(0, dtype=bool)
+
+
 def run_personalization(
     tracks: Mapping[str, str | os.PathLike],
     template: Rig,
@@ -137,7 +150,8 @@ def run_personalization(
     frames = np.concatenate([data[s]["vertices"] for s in fit_names])
     conf = np.concatenate([data[s]["confidence"] for s in fit_names])
     seq_ids = np.concatenate([np.full(data[s]["vertices"].shape[0], i) for i, s in enumerate(fit_names)])
-    res = personalize(b0, Dstar, template.faces, frames, conf, seq_ids, params, template.shape_names, region)
+    res = personalize(b0, Dstar, template.faces, frames, conf, seq_ids, params, template.shape_names, region,
+                      neutral_mask=neutral_frame_mask(data, fit_names, neutral_frames))
     for m in res.warnings:
         log.warning("%s", m)
 
@@ -156,8 +170,10 @@ def run_personalization(
         hid = np.concatenate([np.full(data[s]["vertices"].shape[0], i) for i, s in enumerate(held)])
         vtx = None if region is None else region
         hc_fit = hc if region is None else np.where(np.isin(np.arange(template.n_vertices), region)[None], hc, 0.0)
-        ho["initial"] = fit_weights_and_rigid(b0, Dstar, hf, hc_fit, hid, params, vertices=vtx)
-        ho["final"] = fit_weights_and_rigid(res.neutral, res.deltas, hf, hc_fit, hid, params, vertices=vtx)
+        hn = neutral_frame_mask(data, held, neutral_frames)
+        ho["initial"] = fit_weights_and_rigid(b0, Dstar, hf, hc_fit, hid, params, vertices=vtx, neutral_mask=hn)
+        ho["final"] = fit_weights_and_rigid(res.neutral, res.deltas, hf, hc_fit, hid, params, vertices=vtx,
+                                            neutral_mask=hn)
 
     seq_col = np.concatenate([np.full(data[s]["vertices"].shape[0], s) for s in fit_names])
     frame_col = np.concatenate([data[s]["frames"] if data[s]["frames"] is not None
