@@ -225,7 +225,7 @@ def test_em_recovers_actor_shapes_and_never_increases_the_objective():
 
     verts, faces, D0, actor, W, Rs, ts, seq, frames = scene()
     fit = seq < 5
-    p = PersonalizeParams(lambda_s=0.1, lambda_t=1.0, lambda_r=10.0, lambda_d=0.05, max_iterations=30,
+    p = PersonalizeParams(lambda_s=0.1, lambda_t=1.0, lambda_r=10.0, lambda_d=0.05, lambda_unit_mm=1.0, max_iterations=30,
                           support_tol_mm=1e-9, min_confident_vertices=10)
     res = personalize(verts, D0, faces, frames[fit], None, seq[fit], p)
     J = [o["total"] for o in res.objective]
@@ -247,7 +247,7 @@ def test_em_recovers_actor_shapes_and_never_increases_the_objective():
 
 def test_weights_and_rigid_exact_with_the_true_rig():
     verts, faces, D0, actor, W, Rs, ts, seq, frames = scene(seed=4)
-    p = PersonalizeParams(lambda_s=1e-6, lambda_t=1e-6, min_confident_vertices=10)
+    p = PersonalizeParams(lambda_s=1e-6, lambda_t=1e-6, lambda_unit_mm=1.0, min_confident_vertices=10)
     r = fit_weights_and_rigid(verts, actor, frames, None, seq, p)
     assert r["rms_mm"] < 1e-4
     np.testing.assert_allclose(r["weights"], W, atol=1e-4)
@@ -258,7 +258,7 @@ def test_pinned_neutral_frames_keep_zero_weights_and_fit_the_rigid_motion():
     verts, faces, D0, actor, W, Rs, ts, seq, frames = scene(seed=4)
     first = np.r_[True, seq[1:] != seq[:-1]]  # each sequence starts at its neutral (W = 0 there)
     assert np.all(W[first] == 0)
-    p = PersonalizeParams(lambda_s=1e-6, lambda_t=1e-6, min_confident_vertices=10)
+    p = PersonalizeParams(lambda_s=1e-6, lambda_t=1e-6, lambda_unit_mm=1.0, min_confident_vertices=10)
     r = fit_weights_and_rigid(verts, actor, frames, None, seq, p, neutral_mask=first)
     assert np.all(r["weights"][first] == 0.0)
     np.testing.assert_allclose(r["weights"], W, atol=1e-4)
@@ -275,7 +275,7 @@ def test_pinned_neutral_frames_put_a_held_expression_into_the_neutral_not_the_we
     held = 0.5 * actor[0]
     frames = frames + np.einsum("fij,vj->fvi", Rs, held)
     first = np.r_[True, seq[1:] != seq[:-1]]
-    kw = dict(lambda_s=0.1, lambda_t=1.0, lambda_r=10.0, lambda_d=0.05, max_iterations=30, support_tol_mm=1e-9,
+    kw = dict(lambda_s=0.1, lambda_t=1.0, lambda_r=10.0, lambda_d=0.05, lambda_unit_mm=1.0, max_iterations=30, support_tol_mm=1e-9,
               min_confident_vertices=10)
     pinned = personalize(verts, D0, faces, frames, None, seq, PersonalizeParams(**kw), neutral_mask=first)
     free = personalize(verts, D0, faces, frames, None, seq, PersonalizeParams(**kw, pin_neutral_frames=False),
@@ -320,7 +320,8 @@ def test_frames_with_too_few_confident_vertices_are_skipped_with_a_warning():
 
 def test_em_can_start_from_given_weights_and_rigid_motion():
     verts, faces, D0, actor, W, Rs, ts, seq, frames = scene()
-    p = PersonalizeParams(max_iterations=3, support_tol_mm=1e-9, min_confident_vertices=10, lambda_r=10.0)
+    p = PersonalizeParams(max_iterations=3, support_tol_mm=1e-9, min_confident_vertices=10, lambda_r=10.0,
+                          lambda_unit_mm=1.0)
     res = personalize(verts, D0, faces, frames, None, seq, p, initial_weights=W, initial_rigid=(Rs, ts))
     model = np.einsum("fij,fvj->fvi", Rs, verts + np.einsum("fk,kvc->fvc", W, D0)) + ts[:, None]
     expected = np.sqrt(((model - frames) ** 2).sum(2).mean())
@@ -390,7 +391,7 @@ def test_rom_peak_gauge_recovers_shape_amplitudes_the_faithful_em_cannot():
     fit = seq < 5
     out = {}
     for gauge in ("none", "rom_peak"):
-        p = PersonalizeParams(lambda_r=10.0, max_iterations=30, support_tol_mm=1e-9, min_confident_vertices=10,
+        p = PersonalizeParams(lambda_r=10.0, lambda_unit_mm=1.0, max_iterations=30, support_tol_mm=1e-9, min_confident_vertices=10,
                               gauge=gauge)
         res = personalize(verts, D0, faces, frames[fit], None, seq[fit], p)
         J = [o["total"] for o in res.objective]
@@ -425,3 +426,35 @@ def test_unknown_gauge_is_a_clear_error():
     verts, faces, D0, actor, W, Rs, ts, seq, frames = scene()
     with pytest.raises(InputError, match="unknown gauge 'peak'"):
         personalize(verts, D0, faces, frames, None, seq, PersonalizeParams(gauge="peak"))
+
+
+def test_residual_is_weighted_by_the_confidence_as_the_data_term():
+    verts, faces, D0, actor, W, Rs, ts, seq, frames = scene()
+    rng = np.random.default_rng(3)
+    conf = rng.uniform(0.1, 1.0, frames.shape[:2])
+    p = PersonalizeParams(max_iterations=1, support_tol_mm=1e-9, min_confident_vertices=10)
+    res = personalize(verts, D0, faces, frames, conf, seq, p, initial_weights=W, initial_rigid=(Rs, ts))
+    model = np.einsum("fij,fvj->fvi", Rs, verts + np.einsum("fk,kvc->fvc", W, D0)) + ts[:, None]
+    d2 = ((model - frames) ** 2).sum(2)
+    assert res.residual_initial_mm == pytest.approx(np.sqrt((conf**2 * d2).sum() / (conf**2).sum()), rel=1e-9)
+    assert res.residual_initial_unweighted_mm == pytest.approx(np.sqrt(d2.mean()), rel=1e-9)
+    assert res.residual_final_unweighted_mm > 0 and res.residual_final_mm > 0
+    h = fit_weights_and_rigid(verts, D0, frames, conf, seq, p)
+    x = np.einsum("fij,fvj->fvi", h["rotations"], verts + np.einsum("fk,kvc->fvc", h["weights"], D0))
+    d2 = ((x + h["translations"][:, None] - frames) ** 2).sum(2)
+    assert h["rms_mm"] == pytest.approx(np.sqrt((conf**2 * d2).sum() / (conf**2).sum()), rel=1e-9)
+    assert h["rms_unweighted_mm"] == pytest.approx(np.sqrt(d2.mean()), rel=1e-9)
+
+
+def test_lambdas_stated_in_centimetres_scale_the_unitless_terms_by_100_in_mm():
+    q = PersonalizeParams(lambda_s=0.1, lambda_t=0.01, lambda_r=0.1, lambda_d=0.05, lambda_unit_mm=10.0).in_mm()
+    assert (q.lambda_s, q.lambda_t, q.lambda_r, q.lambda_d, q.lambda_unit_mm) == pytest.approx((10, 1, 10, 0.05, 1))
+    verts, faces, D0, actor, W, Rs, ts, seq, frames = scene()
+    kw = dict(max_iterations=2, support_tol_mm=1e-9, min_confident_vertices=10)
+    cm = personalize(verts, D0, faces, frames, None, seq, PersonalizeParams(**kw))
+    mm = personalize(verts, D0, faces, frames, None, seq,
+                     PersonalizeParams(lambda_s=10.0, lambda_t=1.0, lambda_r=10.0, lambda_unit_mm=1.0, **kw))
+    np.testing.assert_array_equal(cm.deltas, mm.deltas)
+    np.testing.assert_array_equal(cm.weights, mm.weights)
+    with pytest.raises(InputError, match="lambda_unit_mm"):
+        personalize(verts, D0, faces, frames, None, seq, PersonalizeParams(lambda_unit_mm=0.0, **kw))

@@ -38,7 +38,7 @@ def session(tmp_path_factory):
         save_npz(p, vertices=frames[sel].astype(np.float32), confidence=np.ones(frames[sel].shape[:2], np.float32),
                  frames=fr)
         tracks[name] = p
-    cfg = {"held_out_sequences": ["rom05"], "lambda_r": 10.0, "lambda_d": 0.05, "support_tol_mm": 1e-6,
+    cfg = {"held_out_sequences": ["rom05"], "lambda_r": 10.0, "lambda_d": 0.05, "lambda_unit_mm": 1.0, "support_tol_mm": 1e-6,
            "min_confident_vertices": 10, "max_iterations": 15}
     out = root / "results" / "personalize"
     metrics_path = root / "results" / "metrics.json"
@@ -120,7 +120,7 @@ def test_tracks_in_a_rotated_world_get_rotated_initial_shapes(tmp_path):
         save_npz(p, vertices=(frames[sel] @ R.T + t).astype(np.float32),
                  confidence=np.ones(frames[sel].shape[:2], np.float32), frames=np.arange(sel.sum()))
         tracks[p.parent.name] = p
-    cfg = {"lambda_r": 10.0, "lambda_d": 0.05, "support_tol_mm": 1e-6, "min_confident_vertices": 10,
+    cfg = {"lambda_r": 10.0, "lambda_d": 0.05, "lambda_unit_mm": 1.0, "support_tol_mm": 1e-6, "min_confident_vertices": 10,
            "max_iterations": 5}
     m = run_personalization(tracks, template, tmp_path / "out", cfg, None, None, {n: 0 for n in tracks})
     initial = read_rig_npz(tmp_path / "out" / "initial_rig.npz")

@@ -99,7 +99,7 @@ def test_personalize_weight_sweep_same_results_with_a_bar(monkeypatch):
     from rigbuild.personalize.em import PersonalizeParams, fit_weights_and_rigid
 
     neutral, deltas, frames, W = _tiny_blendshape_frames()
-    p = PersonalizeParams()
+    p = PersonalizeParams(lambda_unit_mm=1.0)  # 40 vertices: the regularisers stated in mm
     monkeypatch.setattr(sys, "stderr", NotATTY())
     quiet = fit_weights_and_rigid(neutral, deltas, frames, params=p, sweeps=3)
     assert sys.stderr.getvalue() == ""

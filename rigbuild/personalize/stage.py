@@ -203,6 +203,9 @@ def run_personalization(
         "residual_initial_mm": res.residual_initial_mm,
         "residual_final_mm": res.residual_final_mm,
         "residual_reduction": 1.0 - res.residual_final_mm / res.residual_initial_mm,
+        "residual_initial_unweighted_mm": res.residual_initial_unweighted_mm,
+        "residual_final_unweighted_mm": res.residual_final_unweighted_mm,
+        "residual_reduction_unweighted": 1.0 - res.residual_final_unweighted_mm / res.residual_initial_unweighted_mm,
         "em_iterations": int(res.objective[-1]["iteration"]),
         "objective_initial": res.objective[0]["total"],
         "objective_final": res.objective[-1]["total"],
@@ -215,7 +218,11 @@ def run_personalization(
     }
     if held:
         metrics.update(heldout_residual_initial_mm=ho["initial"]["rms_mm"], heldout_residual_final_mm=ho["final"]["rms_mm"],
-                       heldout_residual_reduction=1.0 - ho["final"]["rms_mm"] / ho["initial"]["rms_mm"])
+                       heldout_residual_reduction=1.0 - ho["final"]["rms_mm"] / ho["initial"]["rms_mm"],
+                       heldout_residual_initial_unweighted_mm=ho["initial"]["rms_unweighted_mm"],
+                       heldout_residual_final_unweighted_mm=ho["final"]["rms_unweighted_mm"],
+                       heldout_residual_reduction_unweighted=1.0 - ho["final"]["rms_unweighted_mm"]
+                       / ho["initial"]["rms_unweighted_mm"])
 
     gt_dir = Path(session_dir) / "ground_truth" if session_dir is not None else None
     if gt_dir is not None and (gt_dir / "actor_rig.npz").exists():
