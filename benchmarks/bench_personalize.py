@@ -55,7 +55,7 @@ def bench_shape_solve(tpl, Dstar, W, frames_rig, tol_mm: float, label: str) -> d
     support = np.linalg.norm(Dstar, axis=2) > tol_mm
     Ds = np.where(support[..., None], Dstar, 0.0)
     active = grow_ring(fr, tpl.faces, tpl.n_vertices, 2)
-    p = PersonalizeParams()
+    p = PersonalizeParams().in_mm()  # the lambdas the EM passes to the shape solve (mm data)
     t0 = time.perf_counter()
     su = ShapeUpdate(tpl.neutral, Ds, tpl.faces, active, p.lambda_r, p.lambda_d, True, support)
     t_setup = time.perf_counter() - t0
