@@ -37,9 +37,8 @@ def plot_convergence(objective: list[dict], path: str | os.PathLike) -> None:
     ax[0].set_xticks(x, labels, fontsize=7)
     ax[0].legend(fontsize=7)
     ax[1].plot(x, [o["rms_mm"] for o in objective], marker="o", label="confidence-weighted")
-    if any("rms_unweighted_mm" in o for o in objective):
-        ax[1].plot(x, [o.get("rms_unweighted_mm", np.nan) for o in objective], marker=".", label="unweighted")
-        ax[1].legend(fontsize=7)
+    ax[1].plot(x, [o["rms_unweighted_mm"] for o in objective], marker=".", label="unweighted")
+    ax[1].legend(fontsize=7)
     ax[1].set_title("fit residual RMS (mm)")
     ax[1].set_xticks(x, labels, fontsize=7)
     ax[1].grid(alpha=0.3)

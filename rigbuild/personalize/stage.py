@@ -69,16 +69,20 @@ def read_tracked_sequence(path: str | os.PathLike, n_vertices: int) -> dict:
     return {"vertices": v, "confidence": np.clip(conf, 0.0, None), "frames": frames}
 
 
+def frame_numbers(sequence: dict) -> np.ndarray:
+    """Session frame numbers (F,) of a :func:`read_tracked_sequence` result (0..F-1 when the file has none)."""
+    return sequence["frames"] if sequence["frames"] is not None else np.arange(sequence["vertices"].shape[0])
+
+
 def neutral_frame_mask(data: Mapping[str, dict], names: list[str], neutral_frames: Mapping[str, int] | None
                        ) -> np.ndarray:
     """(N,) bool over the concatenated frames of sequences ``names``: the frame each sequence names as its
     neutral (``neutral_frames[sequence]``, a session frame number; sequences without one have none)."""
     out = []
     for s in names:
-        n = data[s]["vertices"].shape[0]
-        fr = data[s]["frames"] if data[s]["frames"] is not None else np.arange(n)
+        fr = frame_numbers(data[s])
         nf = (neutral_frames or {}).get(s)
-        out.append(np.zeros(n, dtype=bool) if nf is None else np.asarray(fr) == int(nf))
+        out.append(np.zeros(fr.shape[0], dtype=bool) if nf is None else fr == int(nf))
     return np.concatenate(out) if out else np.zeros(0, dtype=bool)
 
 
@@ -176,8 +180,7 @@ def run_personalization(
                                             neutral_mask=hn)
 
     seq_col = np.concatenate([np.full(data[s]["vertices"].shape[0], s) for s in fit_names])
-    frame_col = np.concatenate([data[s]["frames"] if data[s]["frames"] is not None
-                                else np.arange(data[s]["vertices"].shape[0]) for s in fit_names])
+    frame_col = np.concatenate([frame_numbers(data[s]) for s in fit_names])
     arrays = dict(weights=res.weights.astype(np.float32), rotation=res.rotations.astype(np.float32),
                   translation=res.translations.astype(np.float32), sequence=seq_col, frame=frame_col,
                   kept=res.kept, shape_names=np.asarray(template.shape_names))
@@ -238,8 +241,7 @@ def run_personalization(
                                             res.weights, seq_col, frame_col,
                                             ho.get("final", {}).get("weights"),
                                             np.concatenate([np.full(data[s]["vertices"].shape[0], s) for s in held]) if held else None,
-                                            np.concatenate([data[s]["frames"] if data[s]["frames"] is not None
-                                                            else np.arange(data[s]["vertices"].shape[0]) for s in held]) if held else None))
+                                            np.concatenate([frame_numbers(data[s]) for s in held]) if held else None))
     write_json(out / "personalize_metrics.json", metrics)
     if metrics_path is not None:
         merge_metrics(metrics_path, "personalization", metrics)

@@ -207,8 +207,8 @@ class SourceView:
         """Source pixels uv (N, 2) anchored on the source mesh (:class:`SourcePoints`). ``surface``: their
         precomputed :meth:`surface_points` (tri, bary, ok)."""
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-        tri, bary0, ok = self.surface_points(uv) if surface is None else surface
         u = lift(self.frame.camera, self.frame.depth, uv)
+        tri, bary0, ok = self._closest(u) if surface is None else surface
         ok = ok & np.isfinite(u).all(1)
         n = uv.shape[0]
         bary, h, nrm = bary0.copy(), np.zeros(n), np.zeros((n, 3))

@@ -225,6 +225,8 @@ class SequenceTracker:
         self.faces = np.asarray(faces, dtype=np.int64)
         self.marker_local = np.asarray(marker_local, dtype=np.int64)
         self.solver = LaplacianSolver(self.neutral, self.faces)
+        self.ring = self.solver.L.copy()  # 1-ring pattern (with the diagonal) for the confidences
+        self.ring.data = (np.abs(self.ring.data) > 0).astype(np.float64)
         self.solver.workers = self.p.workers
         if vertex_tri is None:
             vertex_tri = np.full(self.neutral.shape[0], -1, np.int64)
@@ -479,10 +481,7 @@ class SequenceTracker:
         """Per-vertex confidence (T,) of a frame's final constraints (:func:`match_confidence`); 0 on a lost frame."""
         if lost:
             return np.zeros(self.neutral.shape[0])
-        if not hasattr(self, "_ring"):
-            self._ring = self.solver.L.copy()
-            self._ring.data = (np.abs(self._ring.data) > 0).astype(np.float64)
-        return match_confidence(self._ring, self.faces, m, self.p.confidence_scale)
+        return match_confidence(self.ring, self.faces, m, self.p.confidence_scale)
 
 
 def match_confidence(ring, faces: np.ndarray, m: Matches, scale: float) -> np.ndarray:
