@@ -9,7 +9,7 @@
 4. Detection time per 1280x960 image (images rendered by the project renderer, rigbuild.render.board).
 5. The issue's acceptance on a rendered ICT-tier session: config/ict.yaml's synthetic block (8 cameras,
    1280x960, 11x8 ChArUco of 16 mm squares, 40 poses, 1.5 grey-level noise) rendered by
-   rigbuild.calibrate.simulate.render_calibration_session (the generator's functions and seeds), calibrated
+   rigbuild.synth.calibration_scene.render_calibration_session (the generator's functions and seeds), calibrated
    by rigbuild.calibrate.session.calibrate_session, compared with ground truth; plus the corner
    localisation accuracy of render + detector (detected corners vs Camera.project of the true corners).
 
@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 from rigbuild.calibrate.bundle import Observations, jacobian_sparsity, project  # noqa: E402
 from rigbuild.calibrate.detect import detect_board  # noqa: E402
 from rigbuild.calibrate.rig import CalibrationOptions, calibrate_rig  # noqa: E402
-from rigbuild.calibrate.simulate import arc_rig, random_board_poses, simulate_detections  # noqa: E402
+from rigbuild.synth.calibration_scene import arc_rig, random_board_poses, simulate_detections  # noqa: E402
 from rigbuild.eval.calibration import compare_cameras  # noqa: E402
 from rigbuild.session import BoardSpec  # noqa: E402
 
@@ -137,7 +137,7 @@ def rendered_ict_tier(folder=None):
 
     from rigbuild.calibrate.detect import Detection
     from rigbuild.calibrate.session import calibrate_session, calibration_metrics
-    from rigbuild.calibrate.simulate import render_calibration_session
+    from rigbuild.synth.calibration_scene import render_calibration_session
     from rigbuild.eval.calibration import compare_cameras, corner_error_summary, corner_localisation_errors
     from rigbuild.io.cameras import read_cameras
 
@@ -152,7 +152,7 @@ def rendered_ict_tier(folder=None):
         t0 = time.perf_counter()
         render_s = render_calibration_session(folder, "ict", block)["seconds"]
         t_render = time.perf_counter() - t0
-    spec, res = calibrate_session(folder, {})
+    spec, res = calibrate_session(folder)
     truth = read_cameras(folder / "ground_truth" / "cameras.json")
     gt = np.load(folder / "ground_truth" / "board_poses.npz")
     # corner localisation: every observation the calibration used vs the true projection

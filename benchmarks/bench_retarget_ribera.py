@@ -34,13 +34,14 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import print_table, write_result  # noqa: E402
 
-from rigbuild.eval.retarget import retarget_metrics, synthetic_retarget_scene  # noqa: E402
+from rigbuild.eval.retarget import retarget_metrics  # noqa: E402
 from rigbuild.io.rigs import read_ict_rig  # noqa: E402
 from rigbuild.paths import ict_dir  # noqa: E402
 from rigbuild.retarget import ribera as rb  # noqa: E402
 from rigbuild.retarget.common import average_neutral, character_sparse_blendshapes, rigidity_weights, stabilize  # noqa: E402
 from rigbuild.synth.characters import make_character  # noqa: E402
-from rigbuild.synth.markers import load_marker_set  # noqa: E402
+from rigbuild.synth.retarget_scenes import synthetic_retarget_scene  # noqa: E402
+from rigbuild.assets.markers import load_marker_set  # noqa: E402
 
 LAMBDAS_CM = (0.6, 0.006)
 
@@ -148,6 +149,24 @@ METHODS = (("ribera", "ribera", None), ("ribera_activation", "ribera_activation"
            ("rbf", "rbf", None), ("deformation", "deformation", None), ("parallel", "parallel", None))
 
 
+def ceiling_model(character, vertex_ids, a0, actor_sparse, retarget_params) -> rb.RiberaModel:
+    """The parallel-parametrization ceiling: the actor's ground-truth sparse blendshapes (K, M, 3) used directly
+    in the section-5 retargeting (the prior on the character's mesh, rigidity weights from those shapes)."""
+    ch = character.to_units("mm") if character.units != "mm" else character
+    s0, _ = character_sparse_blendshapes(ch, vertex_ids)
+    a0 = np.asarray(a0, float)
+    Q = rb.prior_matrix(ch.neutral, ch.deltas, ch.faces, rb.head_scale(a0, s0))
+    dp = np.asarray(actor_sparse, float)
+    return rb.RiberaModel(a0, dp, Q, rigidity_weights(dp), list(ch.shape_names), retarget_params, None)
+
+
+def model_for(method, ch, vertex_ids, a0, scene, tp, rp, actor_sparse) -> rb.RiberaModel:
+    if method == "parallel":
+        return ceiling_model(ch, vertex_ids, a0, actor_sparse, rp)
+    return rb.build_model(ch, vertex_ids, a0, scene["training"], method, transfer_params=tp, retarget_params=rp,
+                          segment_starts=scene["segment_starts"])
+
+
 def scene_neutral(scene) -> np.ndarray:
     """The actor's neutral as the pipeline builds it: the mean of one neutral frame per ROM sequence."""
     return average_neutral(scene["training"][scene["segment_starts"]])
@@ -169,9 +188,7 @@ def accuracy(template, scene, identity_folder, lambdas=LAMBDAS_CM) -> list[dict]
                     continue
                 t0 = time.perf_counter()
                 tp = rb.TransferParams(guess=guess) if guess else None
-                m = rb.build_model(ch, actor.marker_vertices, a0, scene["training"], method,
-                                   transfer_params=tp, retarget_params=rp, segment_starts=scene["segment_starts"],
-                                   actor_blendshapes=actor_sparse)
+                m = model_for(method, ch, actor.marker_vertices, a0, scene, tp, rp, actor_sparse)
                 w = m.retarget(scene["performance"])
                 met = retarget_metrics(w, m.shape_names, scene["weights"], actor.shape_names, actor_sparse)
                 scale = float(np.median((m.dp * actor_sparse).sum((1, 2)) / (actor_sparse**2).sum((1, 2))))
@@ -194,8 +211,7 @@ def retarget_step(template, scene) -> list[dict]:
     for neutral_label, a0 in (("frame0", scene["neutral"]), ("averaged", scene_neutral(scene))):
         for rigid in ("fixed", "joint"):
             rp = rb.RetargetParams(bounds=(0.0, 1.0), lambda_cm=0.006, rigid=rigid)
-            m = rb.build_model(actor, actor.marker_vertices, a0, None, "parallel", retarget_params=rp,
-                               actor_blendshapes=sparse)
+            m = ceiling_model(actor, actor.marker_vertices, a0, sparse, rp)
             met = retarget_metrics(m.retarget(scene["performance"]), m.shape_names, scene["weights"],
                                    actor.shape_names, sparse)
             rows.append({"neutral": neutral_label, "rigid": rigid, "weight_mae": met["weight_mae"],

@@ -110,16 +110,16 @@ def ict_marker_rig():
         return None
     rig = read_ict_rig(ict_dir())
     try:
-        from rigbuild.synth.markers import load_marker_set
+        from rigbuild.assets.markers import load_marker_set
 
         names, vid = load_marker_set("ict")
-        source = "rigbuild/data/markers/ict.json"
+        source = "rigbuild/assets/marker_sets/ict.json"
     except Exception:  # the data file is not there yet: the same recipe the marker-set script uses
-        from rigbuild.synth.markers import marker_targets, snap_to_surface
+        from rigbuild.assets.markers import marker_targets, snap_to_surface
 
         names, targets = marker_targets(rig.neutral[rig.landmarks])
         vid = snap_to_surface(rig.neutral, rig.faces, targets, candidates=rig.face_vertices)
-        source = "rigbuild.synth.markers recipe (marker_targets + snap_to_surface)"
+        source = "rigbuild.assets.markers recipe (marker_targets + snap_to_surface)"
     return rig.with_markers(names, vid), source
 
 
@@ -172,8 +172,9 @@ def _configs(K, M, fps):
 
 
 def accuracy(n_frames=600, fps=60.0):
-    from rigbuild.eval.seol import evaluated_shapes, seol_metrics, synthetic_performance
-    from rigbuild.retarget.common import per_shape_correlation
+    from rigbuild.eval.retarget import per_shape_correlation
+    from rigbuild.eval.seol import evaluated_shapes, seol_metrics
+    from rigbuild.synth.retarget_scenes import synthetic_performance
     from rigbuild.retarget.seol import corner_hz_from_alpha
     from rigbuild.synth.characters import make_character
 
@@ -215,8 +216,9 @@ def ceiling_ablation(template, chars, n_frames=600, fps=60.0):
     the unconstrained exact fit, so these numbers bound every method's mean correlation."""
     from dataclasses import replace
 
-    from rigbuild.eval.seol import evaluated_shapes, neutral_envelope
-    from rigbuild.retarget.common import mean_correlation
+    from rigbuild.eval.retarget import mean_correlation
+    from rigbuild.eval.seol import evaluated_shapes
+    from rigbuild.synth.retarget_scenes import neutral_envelope
     from rigbuild.retarget.seol import scale_proportion_match
     from rigbuild.synth.actor import make_actor_rig
     from rigbuild.synth.motion import make_performance_weights
@@ -269,8 +271,9 @@ def scale_match_ablation(template, chars, n_frames=600, fps=60.0):
     the transferred marker deltas against the actor's own deltas, seconds per transfer; for the
     stylized character and the unperturbed actor also the per-shape correlations of its 10 worst
     shapes under the paper's RBF."""
-    from rigbuild.eval.seol import evaluated_shapes, neutral_envelope
-    from rigbuild.retarget.common import mean_correlation, per_shape_correlation
+    from rigbuild.eval.retarget import mean_correlation, per_shape_correlation
+    from rigbuild.eval.seol import evaluated_shapes
+    from rigbuild.synth.retarget_scenes import neutral_envelope
     from rigbuild.retarget.proportion import proportion_match
     from rigbuild.synth.actor import make_actor_rig
     from rigbuild.synth.motion import make_performance_weights

@@ -45,7 +45,7 @@ def ict_with_markers(n_markers=60):
         rig = read_ict_rig(ict_dir())
     if rig.marker_vertices.size < 4:
         try:
-            from rigbuild.synth.markers import load_marker_set
+            from rigbuild.assets.markers import load_marker_set
 
             names, ids = load_marker_set("ict")
             rig = rig.with_markers(names, ids)

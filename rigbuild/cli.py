@@ -44,7 +44,7 @@ def _synth(args: argparse.Namespace) -> int:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from rigbuild.eval.table import format_metrics_table
+    from rigbuild.report.table import format_metrics_table
     from rigbuild.io.metrics import read_metrics
 
     path = Path(args.results) / args.session / "metrics.json"

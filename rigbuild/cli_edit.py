@@ -75,7 +75,7 @@ def read_pose_csv(path: str | Path, frame: int) -> dict[str, float]:
 
 
 def run_edit(args: argparse.Namespace) -> int:
-    from rigbuild.retarget.common import read_weight_curves_csv, write_weight_curves_csv, write_weight_curves_json
+    from rigbuild.io.curves import read_weight_curves_csv, write_weight_curves_csv, write_weight_curves_json
     from rigbuild.retarget.editing import edit_spacetime
     from rigbuild.retarget.seol import SeolSystem
 

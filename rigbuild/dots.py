@@ -1,13 +1,10 @@
 """The painted dot pattern of a capture session: the rig's markers plus a stencil of registration dots.
 
 A studio paints dots on the actor through a stencil cut from the template, so every dot sits at a known
-template vertex. The markers (:mod:`rigbuild.synth.markers`) are the named dots the retargeting stages use;
+template vertex. The markers (:mod:`rigbuild.assets.markers`) are the named dots the retargeting stages use;
 the **stencil** adds unnamed dots between them, about ``spacing_mm`` apart, so that the neutral registration
 knows where the template's skin lands on the actor's away from the markers too (the surface alone does not
-say where along it a vertex belongs). Measured on the ICT tier's neutral registration (face region the cameras
-see, reconstructed scan, dot positions with 0.1 mm noise): the 69 markers alone 0.56 mm mean error; with a
-stencil at 20 mm spacing (75 dots) 0.28 mm, at 16 mm (122 dots) 0.25 mm. Coverage matters more than density: the
-same 16 mm stencil kept within 25 mm of a marker and 70 degrees of the forward direction reached only 0.43 mm.
+say where along it a vertex belongs).
 
 The stencil is a pure function of the template and the spacing (the session's ``dot_stencil_mm``), so the
 synthetic generator that paints it and the tracker that looks for it agree without storing vertex lists.
@@ -38,7 +35,7 @@ def stencil_candidates(rig: Rig, reach_mm: float = 80.0, lip_clearance_mm: float
     mk = rig.marker_vertices
     if mk.size == 0:
         raise InputError(f"rig '{rig.name}' has no markers: the dot stencil is laid out around them",
-                         fix="give the template a marker set (rigbuild/data/markers/<rig>.json)")
+                         fix="give the template a marker set (rigbuild/assets/marker_sets/<rig>.json)")
     fv = rig.face_vertices
     P = rig.neutral
     n = vertex_normals(P, rig.faces)

@@ -4,7 +4,7 @@ A rig is a neutral mesh plus K additive shape deltas (delta blendshape model):
 ``vertices(w) = neutral + sum_k w_k * deltas[k]``.
 
 Readers and writers for the formats (ICT FaceXModel folder, OBJ folder, npz, glTF) live in
-:mod:`rigbuild.io.rigs`; the procedural head lives in :mod:`rigbuild.synth.head`.
+:mod:`rigbuild.io.rigs`; the procedural head lives in :mod:`rigbuild.assets.head`.
 """
 
 from __future__ import annotations

@@ -1,6 +1,11 @@
-# Issue 3: multi-camera rig calibration from ChArUco / chessboard images.
+# Multi-camera rig calibration from ChArUco / chessboard images.
 # Uses from common.smk: config["params"]["calibrate"], session_yaml(session), calib_images(session).
+# config["params"]["calibrate"] keys: rigbuild.calibrate.params.CalibrationOptions fields (checked at DAG start).
 
+
+def calibrate_metric_files(session):
+    """The calibrate stage's metrics fragments of a session (gathered by rule metrics)."""
+    return [f"results/{session}/calib/calib_metrics.json"]
 
 
 rule calibrate:
@@ -19,7 +24,6 @@ rule calibrate:
         metrics="results/{session}/calib/calib_metrics.json",
     params:
         calibrate=lambda wc: config["params"].get("calibrate", {}),
-        metrics=lambda wc: f"results/{wc.session}/metrics.json",
     log:
         "logs/{session}/calib/calibrate.log",
     benchmark:

@@ -1,5 +1,5 @@
 # Target characters for retargeting (config `characters:`), built once per session so that their
-# marker maps match the session's marker set.
+# marker maps match the session's marker set (rigbuild/synth/retarget_scenes.py run_character_rig).
 
 
 rule character_rig:

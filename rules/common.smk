@@ -1,21 +1,43 @@
-# Helpers shared by the stage modules (config validation, session lookup, target lists).
+# Helpers shared by the stage modules: config validation at DAG start, session lookup, target lists.
+import functools
+import importlib.util
 import os
 from pathlib import Path
 
 from snakemake.utils import validate
 
 from rigbuild.errors import InputError
+from rigbuild.params import STAGE_PARAMS, load_from_config
+from rigbuild.retarget.methods import PIPELINE_METHODS
 from rigbuild.session import read_session, session_from_dict
 from rigbuild.synth.session import plan_session, planned_files
 
 validate(config, schema="../workflow/schemas/config.schema.json")
+
+
+wildcard_constraints:
+    session="[^/]+",
+
 config.setdefault("characters", {})
 config.setdefault("params", {})
-for _stage in ("calibrate", "reconstruct", "track", "personalize", "retarget", "report"):
+for _stage in STAGE_PARAMS:
     config["params"].setdefault(_stage, {})
 
+
+def validate_stage_params():
+    """Every params.<stage> block checked against the stage's typed definition before any job runs."""
+    from rigbuild.params import check_keys
+
+    check_keys(config["params"], STAGE_PARAMS, "params")
+    for stage, target in STAGE_PARAMS.items():
+        if importlib.util.find_spec(target.split(":")[0]) is not None:
+            load_from_config(stage)(config["params"][stage])
+
+
+validate_stage_params()
+
 # run_sessions (optional): which of the configured sessions this run builds (default: all of them);
-# lets `--configfile config/ict.yaml` run the ICT tier alone although config/config.yaml is loaded first.
+# config/config.yaml is always loaded first, so a tier's config names its own sessions here.
 SESSIONS = list(config.get("run_sessions") or config["sessions"])
 _unknown_sessions = [s for s in SESSIONS if s not in config["sessions"]]
 if _unknown_sessions:
@@ -34,14 +56,20 @@ def is_synthetic(session):
     return "synthetic" in config["sessions"][session]
 
 
-def session_spec(session):
-    """The session's SessionSpec: read from session.yaml, or planned from the synthetic block before
-    the session is generated (so the DAG is known up front)."""
+@functools.lru_cache(maxsize=None)
+def _session_spec(session, generated):
     folder = session_dir(session)
-    if (folder / "session.yaml").exists() or not is_synthetic(session):
+    if generated or not is_synthetic(session):
         return read_session(folder)
     return session_from_dict(plan_session(session, config["sessions"][session]["synthetic"]), folder,
                              source=f"config: sessions.{session}.synthetic")
+
+
+def session_spec(session):
+    """The session's SessionSpec: read from session.yaml, or planned from the synthetic block before
+    the session is generated (so the DAG is known up front). Read once per session and state (input
+    functions call it per job)."""
+    return _session_spec(session, (session_dir(session) / "session.yaml").exists())
 
 
 def session_yaml(session):
@@ -96,26 +124,27 @@ def results(session, *parts):
 
 
 def synthetic_files(session):
-    """Files the synth rule writes for a synthetic session (absolute paths); [] for real sessions."""
+    """What the synth rule declares for a synthetic session (absolute paths; [] for real sessions): session.yaml,
+    the performances and ground_truth/ file by file, and the image folders calib/ and rom/ as directories."""
     if not is_synthetic(session):
         return []
     folder = session_dir(session)
-    return [str(folder / f) for f in planned_files(session, config["sessions"][session]["synthetic"])]
+    files = [f for f in planned_files(session, config["sessions"][session]["synthetic"])
+             if not f.startswith(("calib/", "rom/"))]
+    return [str(folder / f) for f in files] + [directory(str(folder / "calib")), directory(str(folder / "rom"))]
+
+
+def capture_images(session, paths):
+    """A job's image inputs: the files of a real capture; none for a synthetic session, whose images the
+    generator writes with session.yaml (which every such job declares). Listing every generated image made
+    Snakemake match each of them against every other output at DAG build."""
+    return [] if is_synthetic(session) else [str(p) for p in paths]
 
 
 def calib_images(session):
-    """Calibration images: planned ones for synthetic sessions, the folder's for real ones."""
+    """A real capture's calibration images (none listed for a synthetic session: see capture_images)."""
     spec = session_spec(session)
-    if is_synthetic(session):
-        return [f for f in synthetic_files(session) if "/calib/" in f]
-    return [str(p) for cam in spec.cameras for p in spec.calib_images(cam)]
-
-
-def rom_images(session, sequence):
-    """ROM images of one sequence (every frame x every camera)."""
-    spec = session_spec(session)
-    seq = spec.sequence(sequence)
-    return [str(spec.rom_image(sequence, cam, f)) for f in seq.frames for cam in spec.cameras]
+    return capture_images(session, [p for cam in spec.cameras for p in spec.calib_images(cam)])
 
 
 def ground_truth_file(session, relpath):
@@ -135,77 +164,23 @@ def performances(session):
     return [p.name for p in session_spec(session).performances]
 
 
-#: retargeting methods run per (performance, character): Ribera 2017 as written, its activation-aware and
-#: fitted E_Match options, the RBF-transfer and deformation-transfer baselines, and Seol 2012 spacetime cloning
-RETARGET_METHODS = ["ribera", "ribera_activation", "ribera_fit", "rbf", "deformation", "seol"]
-
-
 def stage_targets(session):
-    """Every stage output of a session (the report depends on them all)."""
+    """Every stage output of a session the report shows (the metrics rule gathers the numbers)."""
     targets = [results(session, "calib", "cameras.json")]
-    targets += [results(session, "reconstruct", seq, "recon_metrics.json") for seq in sequences(session)]
+    targets += [results(session, "reconstruct", seq, "recon_summary.json") for seq in sequences(session)]
     targets += [results(session, "track", "track_summary.json"), results(session, "personalize", "rig.npz")]
     for perf in performances(session):
         for character in CHARACTERS:
-            for method in RETARGET_METHODS:
+            for method in PIPELINE_METHODS:
                 targets.append(results(session, "retarget", method, perf, character, "weights.csv"))
-                if is_synthetic(session):
-                    targets.append(results(session, "retarget", method, perf, character, "eval_metrics.json"))
     return targets
 
 
-# ---- used by rules/track.smk
-
-def _track_images(session, seq_name, frames):
-    spec = session_spec(session)
-    return [str(spec.rom_image(seq_name, cam, f)) for cam in spec.cameras for f in frames]
-
-
-def _track_neutral_inputs(wc):
-    spec = session_spec(wc.session)
-    seq = spec.rom[0]
-    return {
-        "session_yaml": f"{session_dir(wc.session)}/session.yaml",
-        "cameras": f"results/{wc.session}/calib/cameras.json",
-        "images": _track_images(wc.session, seq.name, [seq.neutral_frame]),
-        "depth": f"results/{wc.session}/reconstruct/{seq.name}/depth/{seq.neutral_frame:06d}.npz",
-    }
-
-
-def _track_sequence_inputs(wc):
-    spec = session_spec(wc.session)
-    seq = next(s for s in spec.rom if s.name == wc.sequence)
-    frames = [f for f in seq.frames if f >= seq.neutral_frame]
-    anchor = spec.rom[0]
-    return {
-        "session_yaml": f"{session_dir(wc.session)}/session.yaml",
-        "cameras": f"results/{wc.session}/calib/cameras.json",
-        "neutral": f"results/{wc.session}/track/neutral.npz",
-        "images": _track_images(wc.session, seq.name, frames),
-        "depth": [f"results/{wc.session}/reconstruct/{seq.name}/depth/{f:06d}.npz" for f in frames],
-        "anchor_depth": f"results/{wc.session}/reconstruct/{anchor.name}/depth/{anchor.neutral_frame:06d}.npz",
-    }
-
-
-# ---- used by rules/personalize.smk
-
-def _personalize_template(wc):
-    p = config["params"].get("personalize", {})
-    spec = p.get("template_rig") or session_spec(wc.session).template_rig
-    if spec in ("procedural", "ict"):
-        return spec
-    return str(Path(spec) if Path(spec).is_absolute() else Path(workflow.basedir) / spec)
-
-
-# ---- used by rules/retarget.smk and rules/retarget_seol.smk (the actor's tracked ROM markers)
-
-RIBERA_METHODS = ["ribera", "ribera_activation", "ribera_fit", "rbf", "deformation"]
-
-
-def _ribera_training(wc):
-    return [f"results/{wc.session}/track/{seq.name}/markers.npz" for seq in session_spec(wc.session).rom]
-
-
-def _ribera_neutral_frames(wc):
-    # tracked markers.npz rows start at each sequence's first frame
-    return [int(seq.neutral_frame) - int(seq.start) for seq in session_spec(wc.session).rom]
+def metric_files(session):
+    """Every metrics fragment of a session, stage by stage (ground-truth evaluation for synthetic sessions)."""
+    files = []
+    for stage in ("calibrate", "reconstruct", "track", "personalize", "retarget"):
+        files += globals()[f"{stage}_metric_files"](session)
+        if is_synthetic(session):
+            files += globals()[f"eval_{stage}_metric_files"](session)
+    return files

@@ -1,27 +1,35 @@
-# Issue 4: per-frame CPU multi-view stereo of ROM sequences.
+# Per-frame CPU multi-view stereo of ROM sequences (no ground truth: see rules/eval_reconstruct.smk).
 # reconstruct_frame: one job per (session, sequence, frame) -> depth/points/mesh/coverage files + a frame record
 #   (a cluster spreads the frames; bundle them with Snakemake's `group` / --group-components if jobs are too small).
-# reconstruct_summary: one job per (session, sequence) -> coverage.png, recon_metrics.json, reconstruction.* in
-#   results/{session}/metrics.json.
-# Uses from common.smk: config["params"]["reconstruct"], session_dir(session), session_spec(session).
-# config["params"]["reconstruct"] keys: rigbuild.reconstruct.frame.ReconstructParams fields (unknown keys fail).
+# reconstruct_summary: one job per (session, sequence) -> coverage.png, recon_summary.json, sequence_metrics.json.
+# reconstruct_pool: one job per session -> reconstruction_metrics.json (session-level stage keys).
+# Uses from common.smk: config["params"]["reconstruct"], session_dir(session), session_spec(session), sequences().
+# config["params"]["reconstruct"] keys: rigbuild.reconstruct.params (checked at DAG start).
 
 wildcard_constraints:
     frame=r"\d{6}",
+
+
+def reconstruct_metric_files(session):
+    """The reconstruct stage's metrics fragments of a session (gathered by rule metrics)."""
+    return [f"results/{session}/reconstruct/{seq}/sequence_metrics.json" for seq in sequences(session)] + [
+        f"results/{session}/reconstruct/reconstruction_metrics.json"]
 
 
 rule reconstruct_frame:
     input:
         session_yaml=lambda wc: f"{session_dir(wc.session)}/session.yaml",
         cameras="results/{session}/calib/cameras.json",
-        images=lambda wc: [str(session_spec(wc.session).rom_image(wc.sequence, cam, int(wc.frame)))
-                           for cam in session_spec(wc.session).cameras],
+        images=lambda wc: capture_images(wc.session, [session_spec(wc.session).rom_image(wc.sequence, cam, int(wc.frame))
+                                                      for cam in session_spec(wc.session).cameras]),
     output:
         record="results/{session}/reconstruct/{sequence}/frames/{frame}.json",
         depth="results/{session}/reconstruct/{sequence}/depth/{frame}.npz",
         points="results/{session}/reconstruct/{sequence}/points/{frame}.ply",
         mesh="results/{session}/reconstruct/{sequence}/mesh/{frame}.ply",
         coverage="results/{session}/reconstruct/{sequence}/coverage/{frame}.png",
+        # full-precision points and mesh for the ground-truth evaluation; removed once no job needs it
+        geometry=temp("results/{session}/reconstruct/{sequence}/geometry/{frame}.npz"),
     params:
         reconstruct=lambda wc: config["params"].get("reconstruct", {}),
     log:
@@ -31,8 +39,8 @@ rule reconstruct_frame:
     threads: 2
     resources:
         mem_mb=3000,
-    # open3d's multithreaded Poisson solver has segfaulted once in ~100 frames here (not reproducible
-    # on rerun); a retry is cheaper than a failed session
+    # open3d's multithreaded Poisson solver can segfault at random (not reproducible on rerun); a retry
+    # is cheaper than a failed session
     retries: 2
     conda:
         "../environment.yml"
@@ -46,12 +54,29 @@ rule reconstruct_summary:
         records=lambda wc: [f"results/{wc.session}/reconstruct/{wc.sequence}/frames/{f:06d}.json"
                             for f in session_spec(wc.session).sequence(wc.sequence).frames],
     output:
-        metrics="results/{session}/reconstruct/{sequence}/recon_metrics.json",
+        summary="results/{session}/reconstruct/{sequence}/recon_summary.json",
         coverage=report("results/{session}/reconstruct/{sequence}/coverage.png", category="Reconstruction"),
-    params:
-        metrics=lambda wc: f"results/{wc.session}/metrics.json",
+        metrics="results/{session}/reconstruct/{sequence}/sequence_metrics.json",
     log:
         "logs/{session}/reconstruct/{sequence}/summary.log",
+    threads: 1
+    resources:
+        mem_mb=500,
+    conda:
+        "../environment.yml"
+    script:
+        "../scripts/reconstruct.py"
+
+
+rule reconstruct_pool:
+    """Session-level reconstruction.skipped_frames and reconstruction.mean_coverage from every sequence."""
+    input:
+        fragments=lambda wc: [f"results/{wc.session}/reconstruct/{seq}/sequence_metrics.json"
+                              for seq in sequences(wc.session)],
+    output:
+        metrics="results/{session}/reconstruct/reconstruction_metrics.json",
+    log:
+        "logs/{session}/reconstruct/pool.log",
     threads: 1
     resources:
         mem_mb=500,

@@ -1,16 +1,34 @@
-# The session report: one self-contained HTML file per session (images embedded).
+# The session's metrics (one file gathered from every job's fragment) and its report.
+
+
+rule metrics:
+    """Gather every metrics fragment of a session (stage jobs and ground-truth evaluation) into metrics.json."""
+    input:
+        lambda wc: metric_files(wc.session),
+    output:
+        metrics="results/{session}/metrics.json",
+    log:
+        "logs/{session}/report/metrics.log",
+    threads: 1
+    resources:
+        mem_mb=500,
+    conda:
+        "../environment.yml"
+    script:
+        "../scripts/metrics.py"
 
 
 rule report:
     """Metrics with pass/warn/fail, the stages' pictures and rule timings, in one HTML file."""
     input:
-        lambda wc: stage_targets(wc.session),
+        metrics="results/{session}/metrics.json",
+        stages=lambda wc: stage_targets(wc.session),
     output:
         html=report("results/{session}/report.html", category="Report",
                     caption="../workflow/report/session_report.rst"),
     params:
         results_dir=lambda wc: results(wc.session),
-        thresholds=lambda wc: config["params"]["report"].get("thresholds", {}),
+        report=lambda wc: config["params"]["report"],
     log:
         "logs/{session}/report/report.log",
     threads: 1

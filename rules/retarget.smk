@@ -1,11 +1,28 @@
-# Marker-space retargeting with range-of-motion alignment and a geometric prior (Ribera et al. 2017):
-# one job per (session, performance, character, method); method in RIBERA_METHODS
-# (ribera = the paper as written, ribera_activation = the activation-aware E_Match option, ribera_fit = the
-# ROM-fit E_Match option (recommended with guess: deformation), rbf = the RBF-transfer baseline,
-# deformation = the deformation-transfer guesses used directly). Needs from common.smk: session_spec, session_dir, CHARACTERS, results(), is_synthetic;
+# Marker-space retargeting with range-of-motion alignment and a geometric prior (Ribera et al. 2017): one job
+# per (session, performance, character, method), method in RIBERA_METHODS (rigbuild/retarget/methods.py: the
+# method registry). Needs from common.smk: session_spec, performances, performance_file, CHARACTERS, results();
 # characters.smk builds results/{session}/characters/{character}.npz; tracking writes
 # results/{session}/track/{sequence}/markers.npz. Params: config["params"]["retarget"]["ribera"]
-# (keys: scripts/retarget.py PARAMS).
+# (rigbuild/retarget/params.py RiberaParams).
+from rigbuild.retarget.methods import PIPELINE_METHODS, RIBERA_METHODS
+from rigbuild.retarget.methods import wildcard as _method_wildcard
+
+
+def _retarget_rom_markers(wc):
+    """The actor's tracked ROM markers, one file per ROM sequence (session order)."""
+    return [f"results/{wc.session}/track/{seq.name}/markers.npz" for seq in session_spec(wc.session).rom]
+
+
+def _retarget_neutral_frames(wc):
+    """The neutral row of each tracked markers.npz (its rows start at the sequence's first frame)."""
+    return [int(seq.neutral_frame) - int(seq.start) for seq in session_spec(wc.session).rom]
+
+
+def retarget_metric_files(session):
+    """The retargeting jobs' metrics fragments of a session (every method, every character). Metric keys name
+    the method and the character, not the performance: only the first performance's jobs are gathered."""
+    return [results(session, "retarget", method, perf, character, "retarget_metrics.json")
+            for perf in performances(session)[:1] for character in CHARACTERS for method in PIPELINE_METHODS]
 
 
 rule retarget_ribera:
@@ -13,7 +30,7 @@ rule retarget_ribera:
     performance with E_Fit + mu E_Prior + lambda E_Sparse (sec. 5)."""
     input:
         performance=lambda wc: performance_file(wc.session, wc.performance),
-        training=_ribera_training,
+        training=_retarget_rom_markers,
         rig="results/{session}/characters/{character}.npz",
     output:
         weights="results/{session}/retarget/{method}/{performance}/{character}/weights.csv",
@@ -27,8 +44,7 @@ rule retarget_ribera:
         method=lambda wc: wc.method,
         character=lambda wc: wc.character,
         performance=lambda wc: wc.performance,
-        neutral_frames=_ribera_neutral_frames,
-        metrics_path=lambda wc: results(wc.session, "metrics.json"),
+        neutral_frames=_retarget_neutral_frames,
     log:
         "logs/{session}/retarget/{method}.{performance}.{character}.log",
     benchmark:
@@ -37,36 +53,9 @@ rule retarget_ribera:
     resources:
         mem_mb=3000,
     wildcard_constraints:
-        method="|".join(RIBERA_METHODS),
+        method=_method_wildcard(RIBERA_METHODS),
         character="|".join(CHARACTERS) or "(?!)",
     conda:
         "../environment.yml"
     script:
         "../scripts/retarget.py"
-
-
-rule retarget_eval:
-    """Score a synthetic session's retargeted curves (any method) against the ground-truth weights."""
-    input:
-        weights="results/{session}/retarget/{method}/{performance}/{character}/weights.csv",
-        truth=lambda wc: ground_truth_file(wc.session, f"performances/{wc.performance}.npz"),
-        actor_rig=lambda wc: ground_truth_file(wc.session, "actor_rig.npz"),
-    output:
-        metrics="results/{session}/retarget/{method}/{performance}/{character}/eval_metrics.json",
-    params:
-        method=lambda wc: wc.method,
-        character=lambda wc: wc.character,
-        metrics_path=lambda wc: results(wc.session, "metrics.json"),
-        ribera=lambda wc: config["params"]["retarget"].get("ribera", {}),
-    log:
-        "logs/{session}/retarget/{method}_eval.{performance}.{character}.log",
-    threads: 1
-    resources:
-        mem_mb=1000,
-    wildcard_constraints:
-        method="|".join(RIBERA_METHODS + ["seol"]),
-        character="|".join(CHARACTERS) or "(?!)",
-    conda:
-        "../environment.yml"
-    script:
-        "../scripts/retarget_eval.py"

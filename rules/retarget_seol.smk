@@ -1,8 +1,8 @@
 # Spacetime expression cloning (Seol et al. 2012): one job per (session, performance, character).
-# Needs from common.smk: session_spec, session_dir, CHARACTERS, results(), _ribera_training /
-# _ribera_neutral_frames (the tracked ROM markers and their neutral rows); characters.smk builds
+# Needs from common.smk: performance_file, CHARACTERS; from retarget.smk: _retarget_rom_markers /
+# _retarget_neutral_frames (the tracked ROM markers and their neutral rows); characters.smk builds
 # results/{session}/characters/{character}.npz. Params: config["params"]["retarget"]["seol"]
-# (keys: scripts/retarget_seol.py PARAMS).
+# (rigbuild/retarget/params.py SeolParams).
 
 
 rule retarget_seol:
@@ -11,7 +11,7 @@ rule retarget_seol:
     input:
         performance=lambda wc: performance_file(wc.session, wc.performance),
         rig="results/{session}/characters/{character}.npz",
-        neutral=_ribera_training,  # tracked ROM markers: the actor's neutral (mean of the neutral frames)
+        neutral=_retarget_rom_markers,  # tracked ROM markers: the actor's neutral (mean of the neutral frames)
     output:
         weights="results/{session}/retarget/seol/{performance}/{character}/weights.csv",
         weights_json="results/{session}/retarget/seol/{performance}/{character}/weights.json",
@@ -23,8 +23,7 @@ rule retarget_seol:
         seol=lambda wc: config["params"]["retarget"].get("seol", {}),
         character=lambda wc: wc.character,
         performance=lambda wc: wc.performance,
-        metrics_path=lambda wc: results(wc.session, "metrics.json"),
-        neutral_frames=_ribera_neutral_frames,
+        neutral_frames=_retarget_neutral_frames,
     log:
         "logs/{session}/retarget/seol.{performance}.{character}.log",
     benchmark:

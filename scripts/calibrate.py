@@ -1,12 +1,8 @@
-"""Snakemake entry point of rule ``calibrate``: session folder -> results/{session}/calib/ + metrics.json.
+"""Snakemake entry point of rule ``calibrate``: session folder -> results/{session}/calib/.
 
-snakemake.input.session_yaml : the session's session.yaml (its folder is the session)
-snakemake.output.cameras : results/{session}/calib/cameras.json (the other outputs sit beside it)
-snakemake.params.calibrate : config["params"]["calibrate"]
-snakemake.params.metrics : results/{session}/metrics.json
-(no `from __future__` import: Snakemake prepends its preamble to this file)
+input.session_yaml (its folder is the session); output.cameras (the other outputs sit beside it);
+params.calibrate: config["params"]["calibrate"]. (No `from __future__`: Snakemake prepends a preamble.)
 """
-
 
 import logging
 import sys
@@ -14,11 +10,10 @@ from pathlib import Path
 
 
 def main(smk) -> None:
-    from rigbuild.calibrate.session import run_calibration
+    from rigbuild.calibrate.stage import run_calibrate
 
-    session_dir = Path(smk.input.session_yaml).parent
-    out_dir = Path(smk.output.cameras).parent
-    metrics = run_calibration(session_dir, out_dir, dict(smk.params.calibrate or {}), smk.params.metrics)
+    metrics = run_calibrate(Path(smk.input.session_yaml).parent, Path(smk.output.cameras).parent,
+                            smk.params.calibrate)
     logging.info("calibration: %s", metrics)
 
 

@@ -1,17 +1,9 @@
 """Snakemake entry point of rule ``personalize``: tracked ROM sequences -> results/{session}/personalize/.
 
-snakemake.input.tracks : results/{session}/track/{sequence}/vertices.npz for every ROM sequence (session order)
-snakemake.output.rig : results/{session}/personalize/rig.npz (rig_obj/, rig.gltf, weights.npz,
-    convergence.png, heatmaps/, objective.json, personalize_metrics.json sit beside it)
-snakemake.params.personalize : config["params"]["personalize"]
-snakemake.params.template_rig : rig spec (params.personalize.template_rig or session.yaml template_rig)
-snakemake.params.sequences : ROM sequence names (order of input.tracks)
-snakemake.params.neutral_frames : {sequence: neutral_frame}
-snakemake.params.session_dir : the session folder (ground_truth/ is read only by rigbuild.eval)
-snakemake.params.metrics : results/{session}/metrics.json
+input.tracks: vertices.npz per ROM sequence (order of params.sequences); output.rig: rig.npz (the other
+outputs sit beside it); params.personalize: the raw config block; params.template_rig: the resolved rig spec.
 (no `from __future__` import: Snakemake prepends its preamble to this file)
 """
-
 
 import logging
 import sys
@@ -19,16 +11,11 @@ from pathlib import Path
 
 
 def main(smk) -> None:
-    from rigbuild.io.rigs import load_rig
-    from rigbuild.paths import ict_dir
-    from rigbuild.personalize.stage import run_personalization
+    from rigbuild.personalize.stage import run_personalize
 
-    spec = str(smk.params.template_rig)
-    template = load_rig(ict_dir() if spec == "ict" else spec)
     tracks = dict(zip(list(smk.params.sequences), list(smk.input.tracks)))
-    metrics = run_personalization(tracks, template, Path(smk.output.rig).parent, dict(smk.params.personalize or {}),
-                                  smk.params.metrics, smk.params.session_dir, dict(smk.params.neutral_frames),
-                                  cameras_json=smk.input.cameras, workers=int(smk.threads))
+    metrics = run_personalize(tracks, str(smk.params.template_rig), Path(smk.output.rig).parent,
+                              dict(smk.params.personalize or {}), dict(smk.params.neutral_frames), int(smk.threads))
     logging.info("personalization: %s", metrics)
 
 

@@ -1,6 +1,7 @@
 """Stage tests: a synthetic session rendered by the project renderer (rigbuild.render.board via
-rigbuild.calibrate.simulate.render_calibration_session: 640x480, 4 cameras, 12 board poses) through
-rigbuild.calibrate.session.run_calibration; outputs, accuracy against ground truth, bad input, QA gates.
+rigbuild.synth.calibration_scene.render_calibration_session: 640x480, 4 cameras, 12 board poses) through
+rigbuild.calibrate.stage.run_calibrate and the eval rule's rigbuild.eval.calibration.run_eval_calibration;
+outputs, accuracy against ground truth, bad input, QA gates.
 The slow test renders the ICT tier of config/ict.yaml (1280x960, 8 cameras, 11x8 board, 40 poses)."""
 
 from __future__ import annotations
@@ -14,12 +15,13 @@ import pytest
 import yaml
 
 from rigbuild.calibrate.detect import detect_images, session_images
-from rigbuild.calibrate.session import OUTPUT_FILES, run_calibration
-from rigbuild.calibrate.simulate import render_calibration_session
+from rigbuild.calibrate.session import OUTPUT_FILES
+from rigbuild.calibrate.stage import run_calibrate
+from rigbuild.synth.calibration_scene import render_calibration_session
 from rigbuild.errors import InputError, QualityGateError
-from rigbuild.eval.calibration import corner_error_summary, corner_localisation_errors
+from rigbuild.eval.calibration import corner_error_summary, corner_localisation_errors, run_eval_calibration
 from rigbuild.io.cameras import read_cameras
-from rigbuild.io.metrics import flatten_metrics, read_metrics
+from rigbuild.io.metrics import flatten_metrics, gather_metrics, read_metrics
 from rigbuild.paths import PROJECT_ROOT
 from rigbuild.session import read_session
 from rigbuild.synth.rig_layout import DEFAULT_TARGET
@@ -36,11 +38,20 @@ def session(tmp_path_factory):
     return folder, out["cameras"]
 
 
+def run_calibration(folder, out_dir, params, eval_path=None) -> dict:
+    """rule calibrate, then (synthetic session) rule eval_calibration; the two metric blocks merged."""
+    metrics = run_calibrate(folder, out_dir, params)
+    if eval_path is not None:
+        metrics = {**metrics, **run_eval_calibration(Path(out_dir) / "cameras.json",
+                                                     Path(folder) / "ground_truth" / "cameras.json", eval_path)}
+    return metrics
+
+
 @pytest.fixture(scope="module")
 def calibrated(session, tmp_path_factory):
     folder, cams = session
     results = tmp_path_factory.mktemp("results") / "calibsynth"
-    metrics = run_calibration(folder, results / "calib", {"max_rms_px": 0.5}, results / "metrics.json")
+    metrics = run_calibration(folder, results / "calib", {"max_rms_px": 0.5}, results / "eval" / "calibration_metrics.json")
     return results, metrics, cams
 
 
@@ -73,7 +84,8 @@ def test_outputs_written(calibrated):
     assert not [p for p in results.iterdir() if p.name.startswith(".calib")]  # no staging left
     est = read_cameras(results / "calib" / "cameras.json")
     assert [c.id for c in est] == [c.id for c in cams]
-    flat = flatten_metrics(read_metrics(results / "metrics.json"))
+    flat = flatten_metrics(gather_metrics([results / "calib" / "calib_metrics.json",
+                                           results / "eval" / "calibration_metrics.json"]))
     for key in ("calibration.rms_px", "calibration.focal_error_pct", "calibration.center_error_mm",
                 "calibration.rotation_error_deg"):
         assert flat[key] == pytest.approx(metrics[key.split(".")[1]])
@@ -81,6 +93,29 @@ def test_outputs_written(calibrated):
     assert rows[0].startswith("camera,n_images") and len(rows) == 5
     img_rows = (results / "calib" / "reprojection_per_image.csv").read_text().strip().splitlines()
     assert len(img_rows) == 1 + 4 * 12  # every image listed, used or dropped
+
+
+def test_stage_fragment_has_no_ground_truth_keys(calibrated):
+    """The calibrate job's fragment holds only its own numbers; the eval rule adds the errors vs ground truth."""
+    results = calibrated[0]
+    stage = read_metrics(results / "calib" / "calib_metrics.json")
+    evaluated = read_metrics(results / "eval" / "calibration_metrics.json")
+    assert list(stage) == ["calibration"] and list(evaluated) == ["calibration"]
+    assert not [k for k in stage["calibration"] if "error" in k]
+    assert {"focal_error_pct", "center_error_mm", "rotation_error_deg", "scale_error_pct"} <= set(evaluated["calibration"])
+    assert stage["calibration"]["n_cameras"] == evaluated["calibration"]["n_cameras"]  # gathered without conflict
+
+
+def test_unknown_calibrate_key_fails_with_did_you_mean(session, tmp_path):
+    from rigbuild.calibrate.params import from_config
+
+    with pytest.raises(InputError, match=r"params.calibrate.max_rms'.*did you mean 'max_rms_px'"):
+        from_config({"max_rms": 0.5})
+    with pytest.raises(InputError, match="robust_loss"):
+        from_config({"robust_loss": "l2"})
+    with pytest.raises(InputError, match="did you mean 'fix_k3'"):
+        run_calibrate(session[0], tmp_path / "calib", {"fix_k": True})
+    assert not (tmp_path / "calib").exists()
 
 
 def test_accuracy_against_ground_truth(calibrated):
@@ -129,7 +164,7 @@ def test_truncated_png_names_file(session, tmp_path):
     bad.write_bytes(bad.read_bytes()[:2000])
     out = tmp_path / "out"
     with pytest.raises(InputError, match=r"calib/cam02/5.png: truncated PNG"):
-        run_calibration(s, out / "calib", {}, out / "metrics.json")
+        run_calibrate(s, out / "calib", {})
     _assert_nothing_written(out)
 
 
@@ -139,7 +174,7 @@ def test_unreadable_image_names_file(session, tmp_path):
     bad.write_bytes(b"\x89PNG garbage" * 10 + b"IEND\xaeB`\x82")
     out = tmp_path / "out"
     with pytest.raises(InputError, match=r"calib/cam01/3.png: unreadable image"):
-        run_calibration(s, out / "calib", {}, out / "metrics.json")
+        run_calibrate(s, out / "calib", {})
     _assert_nothing_written(out)
 
 
@@ -149,7 +184,7 @@ def test_mismatched_image_size_names_file(session, tmp_path):
     cv2.imwrite(str(bad), cv2.resize(cv2.imread(str(bad)), (320, 240)))
     out = tmp_path / "out"
     with pytest.raises(InputError, match=r"calib/cam03/0.png: image is 320x240 but session.yaml image_size is 640x480"):
-        run_calibration(s, out / "calib", {}, out / "metrics.json")
+        run_calibrate(s, out / "calib", {})
     _assert_nothing_written(out)
 
 
@@ -164,7 +199,7 @@ def test_wrong_board_spec_names_session_yaml(session, tmp_path):
     _edit_yaml(s, lambda d: d["board"].update(dictionary="DICT_6X6_250"))
     out = tmp_path / "out"
     with pytest.raises(InputError, match=r"session.yaml: field 'board': no charuco corners found in any of the 8 "):
-        run_calibration(s, out / "calib", {}, out / "metrics.json")
+        run_calibrate(s, out / "calib", {})
     _assert_nothing_written(out)
 
 
@@ -173,17 +208,17 @@ def test_duplicate_camera_ids_name_session_yaml(session, tmp_path):
     _edit_yaml(s, lambda d: d.update(cameras=["cam00", "cam01", "cam01", "cam03"]))
     out = tmp_path / "out"
     with pytest.raises(InputError, match=r"session.yaml: field 'cameras': duplicate camera ids \['cam01'\]"):
-        run_calibration(s, out / "calib", {}, out / "metrics.json")
+        run_calibrate(s, out / "calib", {})
     _assert_nothing_written(out)
 
 
 def test_qa_gate_failure_leaves_nothing(session, tmp_path):
     out = tmp_path / "out"
     with pytest.raises(QualityGateError, match=r"cam0\d: RMS .* worst images calib/cam0\d/\d+\.png"):
-        run_calibration(session[0], out / "calib", {"max_rms_px": 0.03}, out / "metrics.json")
+        run_calibrate(session[0], out / "calib", {"max_rms_px": 0.03})
     _assert_nothing_written(out)
     with pytest.raises(QualityGateError, match=r"fewer than 30 usable board images"):
-        run_calibration(session[0], out / "calib", {"min_images": 30}, out / "metrics.json")
+        run_calibrate(session[0], out / "calib", {"min_images": 30})
     _assert_nothing_written(out)
 
 
@@ -199,7 +234,7 @@ def test_ict_tier_session_accuracy(tmp_path, ict_folder):
     assert block["n_cameras"] == 8 and block["image_size"] == [1280, 960] and block["calib_poses"] == 40
     folder = tmp_path / "ict"
     render_calibration_session(folder, "ict", block)
-    m = run_calibration(folder, tmp_path / "out" / "calib", {}, tmp_path / "out" / "metrics.json")
+    m = run_calibration(folder, tmp_path / "out" / "calib", {}, tmp_path / "out" / "eval" / "calibration_metrics.json")
     print({k: m[k] for k in ("rms_px", "focal_error_pct", "principal_point_error_px", "center_error_mm",
                              "center_error_mm_mean", "rotation_error_deg", "rotation_error_deg_mean",
                              "scale_error_pct", "seconds", "n_images_used", "n_corners")})

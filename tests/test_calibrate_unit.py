@@ -13,7 +13,7 @@ from rigbuild.calibrate.detect import Detection, detect_board, is_usable, read_g
 from rigbuild.calibrate.posegraph import build_pose_graph, compose, invert
 from rigbuild.calibrate.rig import CalibrationOptions, calibrate_rig
 from rigbuild.calibrate.rotations import chordal_mean, rodrigues, rotation_to_rvec
-from rigbuild.calibrate.simulate import arc_rig, random_board_poses, simulate_detections
+from rigbuild.synth.calibration_scene import arc_rig, random_board_poses, simulate_detections
 from rigbuild.camera import Camera
 from rigbuild.errors import InputError, QualityGateError
 from rigbuild.eval.calibration import compare_cameras

@@ -7,7 +7,7 @@ import numpy as np
 import yaml
 
 from rigbuild.cli import main
-from rigbuild.io.metrics import merge_metrics
+from rigbuild.io.atomic import write_json
 from rigbuild.session import read_session
 
 
@@ -62,7 +62,7 @@ def test_init_session_on_a_folder_without_calib_is_a_clear_error(tmp_path, capsy
 
 
 def test_eval_prints_table_with_status(tmp_path, capsys):
-    merge_metrics(tmp_path / "s1" / "metrics.json", "calibration", {"rms_px": 0.1, "center_error_mm": 2.0})
+    write_json(tmp_path / "s1" / "metrics.json", {"calibration": {"rms_px": 0.1, "center_error_mm": 2.0}})
     assert main(["eval", "s1", "--results", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "calibration.rms_px" in out and "pass" in out and "fail" in out

@@ -11,7 +11,7 @@ from rigbuild.camera import Camera, look_at
 from rigbuild.errors import InputError
 from rigbuild.geometry import apply_rigid, fit_rigid_motion, fit_similarity, rotation_angle_deg
 from rigbuild.io.atomic import atomic_path, write_json
-from rigbuild.io.metrics import flatten_metrics, merge_metrics, read_metrics
+from rigbuild.io.metrics import flatten_metrics, gather_metrics, read_metrics, write_metrics_fragment
 from rigbuild.io.rigs import read_rig_npz, write_obj_folder_rig, write_rig_npz, read_obj_folder_rig
 from rigbuild.rig import Rig
 
@@ -108,14 +108,35 @@ def test_atomic_path_leaves_nothing_on_error(tmp_path):
     assert json.loads(target.read_text()) == {"a": 1.5, "b": [0, 1]}
 
 
-def test_merge_metrics(tmp_path):
-    p = tmp_path / "metrics.json"
-    merge_metrics(p, "calibration", {"rms_px": np.float64(0.1)})
-    merge_metrics(p, "calibration", {"focal_error_pct": 0.01, "bad": float("nan")})
-    merge_metrics(p, "tracking", {"mean_error_mm": 0.3})
-    m = read_metrics(p)
-    assert m["calibration"] == {"rms_px": 0.1, "focal_error_pct": 0.01, "bad": None}
+def test_metrics_fragments_gather_into_one_file(tmp_path):
+    a, b, c = tmp_path / "a.json", tmp_path / "b.json", tmp_path / "c.json"
+    write_metrics_fragment(a, "calibration", {"rms_px": np.float64(0.1), "bad": float("nan")})
+    write_metrics_fragment(b, "calibration", {"focal_error_pct": 0.01, "per": {"cam0": 1}})
+    write_metrics_fragment(c, "tracking", {"mean_error_mm": 0.3})
+    m = gather_metrics([a, b, c])
+    assert m["calibration"] == {"rms_px": 0.1, "bad": None, "focal_error_pct": 0.01, "per": {"cam0": 1}}
     assert flatten_metrics(m)["tracking.mean_error_mm"] == 0.3
+    assert flatten_metrics(m)["calibration.per.cam0"] == 1
+    write_json(tmp_path / "metrics.json", m)
+    assert read_metrics(tmp_path / "metrics.json") == m
+
+
+def test_a_metric_written_twice_with_two_values_is_an_error_naming_both_files(tmp_path):
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    write_metrics_fragment(a, "tracking", {"sequences": {"rom00": {"lost_frames": 1}}})
+    write_metrics_fragment(b, "tracking", {"sequences": {"rom00": {"lost_frames": 2}}})
+    with pytest.raises(ValueError, match=r"tracking\.sequences\.rom00\.lost_frames.*a\.json.*b\.json"):
+        gather_metrics([a, b])
+    write_metrics_fragment(b, "tracking", {"sequences": 3})
+    with pytest.raises(ValueError, match=r"tracking\.sequences.* and 3 in"):
+        gather_metrics([a, b])
+    assert gather_metrics([a, a]) == gather_metrics([a])  # the same value twice is fine
+
+
+def test_metrics_are_scalars(tmp_path):
+    with pytest.raises(TypeError, match="tracking.curve"):
+        write_metrics_fragment(tmp_path / "x.json", "tracking", {"curve": [1.0, 2.0]})
+    assert not (tmp_path / "x.json").exists()
 
 
 def test_ict_loader_reads_shared_folder(ict_rig):

@@ -1,22 +1,34 @@
-"""The personalization stage end to end on a small synthetic session (tracked = ground-truth meshes)."""
+"""The personalization stage end to end on a small synthetic session (tracked = ground-truth meshes), and its
+ground-truth evaluation (rule eval_personalize) on the stage's outputs."""
 
 from __future__ import annotations
 
 import json
+import re
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from rigbuild.errors import InputError
+from rigbuild.eval.personalization import evaluate_personalization, run_eval_personalize
 from rigbuild.io.atomic import save_npz
 from rigbuild.io.gltf import read_gltf_rig
-from rigbuild.io.rigs import read_obj_folder_rig, read_rig_npz, write_rig_npz
-from rigbuild.personalize.stage import neutral_frame_mask, run_personalization, split_params
+from rigbuild.io.rigs import read_obj_folder_rig, read_rig_npz
+from rigbuild.personalize.params import PersonalizeConfig, from_config
+from rigbuild.personalize.stage import neutral_frame_mask, run_personalization
 from rigbuild.rig import Rig
 
+from personalize_scene import write_tracked_session
 from test_personalize_em import scene
 
 NAMES = ["browUp", "smile", "jawOpen", "cheekPuff"]
+#: the ground-truth keys of personalization.* (written by rule eval_personalize, never by the stage)
+GT_KEYS = {"shape_error_initial_mm", "shape_error_final_mm", "shape_error_reduction", "shape_error_reduction_gauge",
+           "weight_mae", "weight_mae_gauge", "min_shape_cosine", "min_shape_cosine_initial", "mean_shape_cosine",
+           "heldout_weight_mae"}
+CFG = {"lambda_r": 10.0, "lambda_d": 0.05, "lambda_unit_mm": 1.0, "support_tol_mm": 1e-6, "min_confident_vertices": 10}
 
 
 @pytest.fixture(scope="module")
@@ -24,27 +36,14 @@ def session(tmp_path_factory):
     root = tmp_path_factory.mktemp("pz")
     verts, faces, D0, actor, W, Rs, ts, seq, frames = scene()
     template = Rig(verts, D0, NAMES, faces, name="template")
-    sess = root / "session"
-    gt = sess / "ground_truth"
-    write_rig_npz(gt / "actor_rig.npz", Rig(verts, actor, NAMES, faces, name="actor"))
-    tracks = {}
-    for s in np.unique(seq):
-        name = f"rom{s:02d}"
-        sel = seq == s
-        fr = np.arange(sel.sum())
-        save_npz(gt / "rom" / f"{name}.npz", vertices=frames[sel].astype(np.float32), weights=W[sel].astype(np.float32),
-                 shape_names=np.asarray(NAMES), frames=fr)
-        p = root / "results" / "track" / name / "vertices.npz"
-        save_npz(p, vertices=frames[sel].astype(np.float32), confidence=np.ones(frames[sel].shape[:2], np.float32),
-                 frames=fr)
-        tracks[name] = p
-    cfg = {"held_out_sequences": ["rom05"], "lambda_r": 10.0, "lambda_d": 0.05, "lambda_unit_mm": 1.0, "support_tol_mm": 1e-6,
-           "min_confident_vertices": 10, "max_iterations": 15}
+    s = write_tracked_session(root, template, actor, W, seq, frames)
     out = root / "results" / "personalize"
-    metrics_path = root / "results" / "metrics.json"
-    m = run_personalization(tracks, template, out, cfg, metrics_path, sess, {n: 0 for n in tracks})
-    return dict(root=root, out=out, metrics=m, metrics_path=metrics_path, template=template, actor=actor,
-                tracks=tracks, sess=sess)
+    m = run_personalization(s["tracks"], template, out, {"held_out_sequences": ["rom05"], "max_iterations": 15, **CFG},
+                            {n: 0 for n in s["tracks"]})
+    metrics_path = root / "results" / "eval" / "personalization_metrics.json"
+    gt = run_eval_personalize(s["gt"], out / "weights.npz", out / "fit.npz", None, metrics_path)
+    return dict(root=root, out=out, metrics=m, gt=gt, metrics_path=metrics_path, template=template, actor=actor,
+                tracks=s["tracks"], sess=s["session"])
 
 
 def test_outputs_exist_and_reload(session):
@@ -62,6 +61,10 @@ def test_outputs_exist_and_reload(session):
         assert z["weights"].shape == (60, 4) and z["rotation"].shape == (60, 3, 3)
         assert z["heldout_weights"].shape == (12, 4)
         assert set(z["sequence"]) == {f"rom{s:02d}" for s in range(5)}
+        np.testing.assert_array_equal(z["heldout_frame"], np.arange(12))
+    with np.load(out / "fit.npz") as z:
+        assert z["deltas"].dtype == np.float64 and z["weights"].shape == (60, 4)
+        np.testing.assert_allclose(z["deltas"], rig.deltas, atol=1e-4)
     assert (out / "convergence.png").stat().st_size > 1000
     assert sorted(p.name for p in (out / "heatmaps").glob("*.png")) == sorted([f"{n}.png" for n in NAMES] + ["overview.png"])
     obj = json.loads((out / "objective.json").read_text())
@@ -69,18 +72,69 @@ def test_outputs_exist_and_reload(session):
     assert np.all(np.diff(J) <= 1e-9 * J[0])
 
 
+def test_stage_fragment_has_no_ground_truth_keys_and_the_evaluation_has_them(session):
+    fragment = json.loads((session["out"] / "personalize_metrics.json").read_text())
+    assert set(fragment) == {"personalization"}
+    stage = fragment["personalization"]
+    assert stage == pytest.approx(session["metrics"])
+    assert not GT_KEYS & set(stage)
+    assert {"residual_reduction", "heldout_residual_reduction", "objective_monotone"} <= set(stage)
+    ev = json.loads(session["metrics_path"].read_text())
+    assert set(ev) == {"personalization"} and set(ev["personalization"]) == GT_KEYS
+    assert ev["personalization"] == pytest.approx(session["gt"])
+
+
 def test_metrics_against_ground_truth(session):
-    m = session["metrics"]
-    merged = json.loads(session["metrics_path"].read_text())["personalization"]
-    for key in ("residual_reduction", "heldout_residual_reduction", "shape_error_reduction", "weight_mae",
-                "min_shape_cosine"):
-        assert key in merged and merged[key] == pytest.approx(m[key])
+    m, gt = session["metrics"], session["gt"]
     assert m["objective_monotone"] is True
     assert m["residual_reduction"] >= 0.5
     assert m["heldout_residual_reduction"] >= 0.4
-    assert m["shape_error_reduction"] >= 0.3
-    assert m["weight_mae"] <= 0.05
-    assert m["min_shape_cosine"] >= 0.9
+    assert gt["shape_error_reduction"] >= 0.3
+    assert gt["weight_mae"] <= 0.05
+    assert gt["min_shape_cosine"] >= 0.9
+
+
+def test_evaluation_reads_only_the_declared_ground_truth(session, tmp_path):
+    """Rule eval_personalize declares ground_truth/actor_rig.npz and rom/<seq>.npz (and cameras.json, read only
+    with calibrated cameras): with a copy holding just those files the metrics are the same."""
+    gt = tmp_path / "ground_truth"
+    (gt / "rom").mkdir(parents=True)
+    shutil.copy(session["sess"] / "ground_truth" / "actor_rig.npz", gt)
+    for name in session["tracks"]:
+        shutil.copy(session["sess"] / "ground_truth" / "rom" / f"{name}.npz", gt / "rom")
+    out = session["out"]
+    assert evaluate_personalization(gt, out / "weights.npz", out / "fit.npz") == session["gt"]
+
+
+def test_stage_code_never_reads_ground_truth():
+    root = Path(__file__).resolve().parents[1]
+    files = sorted((root / "rigbuild" / "personalize").glob("*.py")) + [root / "scripts" / "personalize.py"]
+    for f in files:
+        text = f.read_text()
+        assert not re.search(r"rigbuild\.(eval|synth)\b|ground_truth", text), f
+
+
+def test_unknown_key_fails_with_did_you_mean():
+    with pytest.raises(InputError, match=r"unknown key 'params.personalize.lamda_s' \(did you mean 'lambda_s'\?\)"):
+        from_config({"lamda_s": 0.1})
+    with pytest.raises(InputError, match=r"'params.personalize.held_out_sequence' \(did you mean 'held_out_sequences'"):
+        from_config({"held_out_sequence": ["rom05"]})
+
+
+def test_params_are_typed_and_checked():
+    cfg = from_config({"gauge": "rom_peak", "gauge_max_weight": 2.5, "held_out_sequences": ["rom11"],
+                       "template_rig": "ict"})
+    assert isinstance(cfg, PersonalizeConfig)
+    assert cfg.em.gauge == "rom_peak" and cfg.em.gauge_max_weight == 2.5
+    assert cfg.held_out_sequences == ("rom11",) and cfg.template_rig == "ict" and cfg.fit_region == "face"
+    assert from_config(None) == PersonalizeConfig()
+    for bad, msg in [({"gauge": "peak"}, "unknown gauge 'peak'"), ({"fit_region": "head"}, "unknown fit_region"),
+                     ({"lambda_unit_mm": 0.0}, "lambda_unit_mm must be a positive"),
+                     ({"lambda_unit_mm": -10.0}, "lambda_unit_mm must be a positive"),
+                     ({"qp_method": "osqp"}, "unknown qp_method"), ({"gauge_max_weight": 0.5}, "gauge_max_weight"),
+                     ({"held_out_sequences": "rom05"}, "held_out_sequences must be a list")]:
+        with pytest.raises(InputError, match=msg):
+            from_config(bad)
 
 
 def test_bad_inputs_name_the_problem(session, tmp_path):
@@ -92,12 +146,8 @@ def test_bad_inputs_name_the_problem(session, tmp_path):
     with pytest.raises(InputError, match="topology differs") as e:
         run_personalization(tracks, t, tmp_path / "out", {"min_confident_vertices": 10})
     assert str(bad) in str(e.value)
-    with pytest.raises(InputError, match="unknown key"):
-        split_params({"lambda_x": 1})
     with pytest.raises(InputError, match="held-out sequence"):
         run_personalization(session["tracks"], t, tmp_path / "out", {"held_out_sequences": ["nope"]})
-    params, _ = split_params({"gauge": "rom_peak", "gauge_max_weight": 2.5})
-    assert params.gauge == "rom_peak" and params.gauge_max_weight == 2.5
     with pytest.raises(InputError, match="unknown gauge 'peak'"):
         run_personalization(session["tracks"], t, tmp_path / "out", {"gauge": "peak", "min_confident_vertices": 10})
 
@@ -106,28 +156,33 @@ def test_tracks_in_a_rotated_world_get_rotated_initial_shapes(tmp_path):
     """Tracked meshes in the calibrated cameras' world (here turned 160 degrees about y and moved, as a camera
     facing the actor is): D* is the template's shapes turned into that world (deformation gradients are in world
     axes, so an unaligned transfer would move the mouth along the template's axes), and the fit is as good as
-    in the template's own world."""
+    in the template's own world. The evaluation maps the shapes back with the cameras."""
     import cv2
+
+    from rigbuild.camera import Camera, look_at
 
     verts, faces, D0, actor, W, Rs, ts, seq, frames = scene()
     template = Rig(verts, D0, NAMES, faces, name="template")
     R = cv2.Rodrigues(np.array([0.0, 1.0, 0.1]) / np.linalg.norm([0.0, 1.0, 0.1]) * np.radians(160))[0]
     t = np.array([5.0, -20.0, 450.0])
-    tracks = {}
-    for s in np.unique(seq)[:3]:
-        sel = seq == s
-        p = tmp_path / "track" / f"rom{s:02d}" / "vertices.npz"
-        save_npz(p, vertices=(frames[sel] @ R.T + t).astype(np.float32),
-                 confidence=np.ones(frames[sel].shape[:2], np.float32), frames=np.arange(sel.sum()))
-        tracks[p.parent.name] = p
-    cfg = {"lambda_r": 10.0, "lambda_d": 0.05, "lambda_unit_mm": 1.0, "support_tol_mm": 1e-6, "min_confident_vertices": 10,
-           "max_iterations": 5}
-    m = run_personalization(tracks, template, tmp_path / "out", cfg, None, None, {n: 0 for n in tracks})
+    cams = []
+    for i, c in enumerate([(-200.0, 0.0, 500.0), (0.0, 50.0, 520.0), (200.0, 0.0, 500.0), (0.0, -150.0, 480.0)]):
+        Rc, tc = look_at(np.array(c), np.zeros(3))
+        cams.append(Camera(f"cam{i}", 640, 480, np.array([[800, 0, 320], [0, 800, 240], [0, 0, 1.0]]), np.zeros(5), Rc, tc))
+    keep = seq < 3
+    s = write_tracked_session(tmp_path, template, actor, W[keep], seq[keep], frames[keep], world=(R, t), cameras=cams)
+    m = run_personalization(s["tracks"], template, tmp_path / "out", {"max_iterations": 5, **CFG},
+                            {n: 0 for n in s["tracks"]})
     initial = read_rig_npz(tmp_path / "out" / "initial_rig.npz")
     Dw = D0 @ R.T
     cos = [float(np.sum(a * b) / (np.linalg.norm(a) * np.linalg.norm(b))) for a, b in zip(initial.deltas, Dw)]
     assert min(cos) > 0.97, cos
     assert m["residual_reduction"] >= 0.5
+    out = tmp_path / "out"
+    mapped = evaluate_personalization(s["gt"], out / "weights.npz", out / "fit.npz", s["cameras"])
+    assert mapped["min_shape_cosine"] >= 0.9 and mapped["shape_error_reduction"] > 0
+    unmapped = evaluate_personalization(s["gt"], out / "weights.npz", out / "fit.npz")
+    assert unmapped["min_shape_cosine"] < mapped["min_shape_cosine"]
 
 
 def test_neutral_frame_mask_marks_each_sequences_named_neutral_frame():

@@ -1,8 +1,8 @@
 """Stage test: a textured sphere session on disk (ray-cast ground truth) through the reconstruct stage.
 
-Checks the outputs (depth/points/mesh/coverage per frame, recon_metrics.json, metrics.json), accuracy against
-the analytic sphere, depth_at through the written depth file, and bad-input handling (skip / fail / cameras
-that do not match the session).
+Checks the outputs (depth/points/mesh/coverage per frame, recon_summary.json, the metrics fragments), accuracy
+against the analytic sphere, depth_at through the written depth file, bad-input handling (skip / fail / cameras
+that do not match the session), and that the ground-truth keys come from the eval rules, not the stage.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from recon_scene import camera_arc, render, sphere_scene
+from recon_scene import camera_arc, render, sphere_scene, uv_sphere
 from rigbuild.errors import InputError
 
 RADIUS = 60.0
@@ -41,29 +41,42 @@ def sphere_session(tmp_path_factory):
                              "marker_size_mm": 18.0, "dictionary": "DICT_5X5_100"},
                    "rom": [{"name": "seq", "frames": [0, 2], "neutral_frame": 0}]}, root)
     write_cameras(root / "cameras.json", cams)
+    # ground truth as rigbuild.synth.session lays it out (for the eval rules only)
+    v, f, _ = uv_sphere(RADIUS)
+    f = f[:, ::-1]  # outward normals (visibility faces the cameras)
+    gt = root / "ground_truth"
+    (gt / "rom").mkdir(parents=True)
+    np.savez(gt / "rom" / "seq.npz", vertices=np.stack([v + CENTERS[k] for k in (0, 1, 2)]), frames=np.arange(3))
+    np.savez(gt / "actor_rig.npz", neutral=v, deltas=np.zeros((0,) + v.shape), shape_names=np.zeros(0, str), faces=f)
+    write_cameras(gt / "cameras.json", cams)
     return root, cams
 
 
 @pytest.fixture(scope="module")
 def stage_run(sphere_session, tmp_path_factory):
-    from rigbuild.reconstruct.sequence import run_frame_job, run_sequence_summary
+    """The stage's three rules on the session: reconstruct_frame (x3), reconstruct_summary, reconstruct_pool."""
+    from rigbuild.io.metrics import gather_metrics
+    from rigbuild.reconstruct.stage import run_reconstruct_frame, run_reconstruct_pool, run_reconstruct_summary
 
     root, cams = sphere_session
     out = tmp_path_factory.mktemp("results") / "seq"
-    metrics = out.parent / "metrics.json"
     logs = []
-    records = run_frame_job(root, "seq", [0, 1, 2], root / "cameras.json", {"on_bad_frame": "skip"}, out,
-                            log=logs.append)
-    summary = run_sequence_summary(root, "seq", [out / "frames" / f"{f:06d}.json" for f in (0, 1, 2)], out, metrics)
+    records = run_reconstruct_frame(root, "seq", [0, 1, 2], root / "cameras.json", {"on_bad_frame": "skip"}, out,
+                                    log=logs.append)
+    summary = run_reconstruct_summary(root, "seq", [out / "frames" / f"{f:06d}.json" for f in (0, 1, 2)], out,
+                                      out / "sequence_metrics.json")
+    run_reconstruct_pool([out / "sequence_metrics.json"], out.parent / "reconstruction_metrics.json")
+    metrics = gather_metrics([out / "sequence_metrics.json", out.parent / "reconstruction_metrics.json"])
     return out, metrics, records, summary, logs
 
 
 def test_outputs_exist_and_bad_frame_is_reported(stage_run):
     out, metrics, records, summary, logs = stage_run
     for f in (0, 1, 2):
-        for sub, ext in (("depth", "npz"), ("points", "ply"), ("mesh", "ply"), ("coverage", "png"), ("frames", "json")):
+        for sub, ext in (("depth", "npz"), ("points", "ply"), ("mesh", "ply"), ("coverage", "png"), ("frames", "json"),
+                         ("geometry", "npz")):
             assert (out / sub / f"{f:06d}.{ext}").is_file()
-    assert (out / "coverage.png").is_file() and (out / "recon_metrics.json").is_file()
+    assert (out / "coverage.png").is_file() and (out / "recon_summary.json").is_file()
     assert summary["reconstructed"] == [0, 1]
     assert list(summary["skipped"]) == ["2"] and "cam03" in summary["skipped"]["2"] and "all black" in summary["skipped"]["2"]
     assert any("WARNING" in m and "frame 2 skipped" in m for m in logs)
@@ -71,7 +84,7 @@ def test_outputs_exist_and_bad_frame_is_reported(stage_run):
 
     d2 = read_depth(out / "depth" / "000002.npz")
     assert d2["skipped"] and "all black" in d2["reason"] and not np.any(d2["depth"])
-    m = json.loads(metrics.read_text())["reconstruction"]
+    m = metrics["reconstruction"]
     assert m["skipped_frames"] == 1 and m["sequences"]["seq"]["frames"] == 3
     assert 0.5 < m["mean_coverage"] <= 1.0
 
@@ -115,10 +128,59 @@ def test_depth_at_through_written_depth_file(stage_run, sphere_session):
     assert np.allclose(cam.project(X[ok]), uv[ok], atol=1e-3)
 
 
+def test_ground_truth_keys_come_from_the_eval_rules(stage_run, sphere_session, tmp_path):
+    """The stage's records and fragments hold no errors; eval_reconstruction_sequence / eval_reconstruction
+    (rules/eval_reconstruct.smk) add them, and the gathered keys are the session's reconstruction.* keys."""
+    from rigbuild.eval.reconstruction import run_eval_reconstruction_pool, run_eval_reconstruction_sequence
+    from rigbuild.io.metrics import flatten_metrics, gather_metrics
+
+    out, metrics, records, summary, _ = stage_run
+    root, _ = sphere_session
+    stage_keys = set(flatten_metrics(metrics))
+    assert stage_keys == {"reconstruction.skipped_frames", "reconstruction.mean_coverage"} | {
+        f"reconstruction.sequences.seq.{k}" for k in ("mean_coverage", "seconds_per_frame", "frames", "skipped_frames")}
+    assert not any("ground_truth" in r for r in records) and "ground_truth" not in summary
+    gt = root / "ground_truth"
+    frames = [f"{f:06d}" for f in (0, 1, 2)]
+    errors = run_eval_reconstruction_sequence(
+        root / "session.yaml", "seq", root / "cameras.json", [out / "frames" / f"{f}.json" for f in frames],
+        [out / "geometry" / f"{f}.npz" for f in frames], gt / "rom" / "seq.npz", gt / "actor_rig.npz",
+        gt / "cameras.json", tmp_path / "seq_metrics.json", tmp_path / "frames.json")
+    assert errors["frames_evaluated"] == 2  # frame 2 was skipped
+    assert errors["median_error_mm"] < 0.2 and errors["completeness"] > 0.5  # plumbing, not accuracy
+    detail = json.loads((tmp_path / "frames.json").read_text())
+    assert sorted(detail["per_frame"]) == ["0", "1"]
+    assert errors["median_error_mm"] == max(e["median_error_mm"] for e in detail["per_frame"].values())
+    pooled = run_eval_reconstruction_pool([tmp_path / "seq_metrics.json"], tmp_path / "reconstruction_metrics.json")
+    assert pooled == {k: errors[k] for k in ("median_error_mm", "p90_error_mm", "completeness")}
+    flat = flatten_metrics(gather_metrics([out / "sequence_metrics.json", out.parent / "reconstruction_metrics.json",
+                                           tmp_path / "seq_metrics.json", tmp_path / "reconstruction_metrics.json"]))
+    assert set(flat) - stage_keys == {"reconstruction.median_error_mm", "reconstruction.p90_error_mm",
+                                      "reconstruction.completeness"} | {
+        f"reconstruction.sequences.seq.{k}" for k in (
+            "median_error_mm", "p90_error_mm", "completeness", "mean_median_error_mm", "mean_p90_error_mm",
+            "mean_completeness", "point_median_error_mm", "frames_evaluated")}
+
+
+def test_unknown_reconstruct_key_fails_with_did_you_mean(sphere_session, tmp_path):
+    from rigbuild.reconstruct.params import from_config
+    from rigbuild.reconstruct.stage import run_reconstruct_frame
+
+    with pytest.raises(InputError, match=r"unknown key 'params.reconstruct.poisson_dept' \(did you mean 'poisson_depth'\?\)"):
+        from_config({"poisson_dept": 9})
+    with pytest.raises(InputError, match="did you mean 'min_ncc'"):  # a StereoParams field, given flat
+        from_config({"min_nc": 0.4})
+    assert from_config({"min_ncc": 0.4, "min_views": 3}).stereo.min_ncc == 0.4
+    root, _ = sphere_session
+    with pytest.raises(InputError, match="did you mean 'on_bad_frame'"):
+        run_reconstruct_frame(root, "seq", [0], root / "cameras.json", {"on_bad_fram": "skip"}, tmp_path / "x")
+    assert not (tmp_path / "x").exists()
+
+
 def test_fail_mode_and_camera_mismatch(sphere_session, tmp_path):
     from rigbuild.camera import Camera
     from rigbuild.io.cameras import write_cameras
-    from rigbuild.reconstruct.sequence import run_frame_job
+    from rigbuild.reconstruct.stage import run_reconstruct_frame as run_frame_job
 
     root, cams = sphere_session
     with pytest.raises(InputError, match="frame 2.*all black"):

@@ -199,7 +199,7 @@ def test_closed_surface_checks():
 
 
 def test_params_validation():
-    from rigbuild.reconstruct.frame import ReconstructParams
+    from rigbuild.reconstruct.params import ReconstructParams
 
     p = ReconstructParams.from_dict({"window": 9, "min_views": 3, "on_bad_frame": "fail"})
     assert p.stereo.window == 9 and p.min_views == 3 and p.on_bad_frame == "fail"

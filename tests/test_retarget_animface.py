@@ -1,5 +1,5 @@
 """Real marker takes (AnimFace, Maya ASCII, 41 markers, cm, 60 Hz) retargeted onto the ICT template with the
-marker map rigbuild/data/markers/animface_ict.json (Ribera et al. 2017 method and the RBF baseline)."""
+marker map rigbuild/assets/marker_sets/animface_ict.json (Ribera et al. 2017 method and the RBF baseline)."""
 
 from __future__ import annotations
 

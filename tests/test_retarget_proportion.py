@@ -29,7 +29,7 @@ def _markers(M=30, seed=0):
 
 @pytest.fixture(scope="module")
 def head():
-    from rigbuild.synth.head import procedural_head_rig
+    from rigbuild.assets.head import procedural_head_rig
 
     return procedural_head_rig()
 
@@ -120,7 +120,7 @@ def test_deformation_mode_identity_and_similarity_maps_are_exact(head):
     mv = head.marker_vertices
     n, d = head.neutral[mv], head.deltas[:, mv]
     # deformation transfer itself treats displacements below 1e-6 of the bounding box as static, so
-    # "exact" here is to 1e-5 of the largest displacement (measured 6e-6)
+    # "exact" here is to 1e-5 of the largest displacement
     tol = 1e-5 * np.abs(d).max()
     ident = fit_proportion_map(n, n)
     np.testing.assert_allclose(transfer_displacements_mesh(ident, head.neutral, head.deltas, head.faces, mv), d,
@@ -149,7 +149,6 @@ def test_deformation_mode_undoes_a_stylized_character(head):
         rel = np.linalg.norm((d - truth).reshape(head.n_shapes, -1), axis=1) / np.maximum(
             np.linalg.norm(truth.reshape(head.n_shapes, -1), axis=1), 1e-12)
         err[mode] = float(np.median(rel[big]))
-    # measured: rbf 0.23, none 0.27, deformation 0.065
     assert err["deformation"] < 0.1
     assert err["deformation"] < 0.4 * err["rbf"]
 
@@ -157,7 +156,8 @@ def test_deformation_mode_undoes_a_stylized_character(head):
 def test_stage_stylized_character_correlation(head):
     """Spacetime retargeting (recommended prior setting) onto the stylized procedural character:
     scale_match="deformation" reaches >= 0.9 mean correlation and beats the paper's RBF evaluation."""
-    from rigbuild.eval.seol import evaluated_shapes, seol_metrics, synthetic_performance
+    from rigbuild.eval.seol import evaluated_shapes, seol_metrics
+    from rigbuild.synth.retarget_scenes import synthetic_performance
     from rigbuild.retarget.seol import retarget_seol, sparse_combination_weights
     from rigbuild.synth.characters import make_character
 
@@ -169,7 +169,6 @@ def test_stage_stylized_character_correlation(head):
               beta=np.full(M, (2 * np.pi / 60.0) ** 2))
     m = {sm: seol_metrics(retarget_seol(case["markers"], char, scale_match=sm, **kw), case["weights"], shapes)
          for sm in ("rbf", "deformation")}
-    # measured: rbf 0.882, deformation 0.918
     assert m["deformation"]["spacetime"]["mean_correlation"] >= 0.9
     assert m["deformation"]["spacetime"]["mean_correlation"] > m["rbf"]["spacetime"]["mean_correlation"] + 0.02
     for sm in m:

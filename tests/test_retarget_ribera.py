@@ -10,19 +10,9 @@ import pytest
 
 from rigbuild.errors import InputError
 from rigbuild.retarget import ribera as rb
-from rigbuild.retarget.common import (
-    check_frames,
-    map_markers_to_vertices,
-    mean_correlation,
-    observable_shapes,
-    per_shape_correlation,
-    read_weight_curves_csv,
-    reorder_markers,
-    stabilize,
-    weight_mae,
-    write_weight_curves_csv,
-    write_weight_curves_json,
-)
+from rigbuild.eval.retarget import mean_correlation, observable_shapes, per_shape_correlation, weight_mae
+from rigbuild.io.curves import read_weight_curves_csv, write_weight_curves_csv, write_weight_curves_json
+from rigbuild.retarget.common import check_frames, map_markers_to_vertices, reorder_markers, stabilize
 from rigbuild.rig import Rig
 
 
@@ -273,7 +263,7 @@ def test_stabilize_removes_rigid_motion():
     np.testing.assert_allclose(np.nan_to_num(stable), np.nan_to_num(np.broadcast_to(ref, moved.shape) * (stable == stable)), atol=1e-9)
 
 
-def test_build_model_parallel_and_rbf_on_own_rig():
+def test_build_model_rbf_on_own_rig():
     """Character = actor: RBF guesses equal the actor's shapes; weights recovered through head motion."""
     from scipy.spatial.transform import Rotation
 
@@ -285,13 +275,14 @@ def test_build_model_parallel_and_rbf_on_own_rig():
     R = Rotation.from_rotvec(rng.normal(size=(20, 3)) * 0.02).as_matrix()
     X = np.einsum("fij,fmj->fmi", R, X) + rng.normal(size=(20, 1, 3))
     prm = rb.RetargetParams(mu=0.0, lambda_cm=0.0, bounds=(0, 1), refine_rigid=2)
-    for method in ("rbf", "parallel"):
-        m = rb.build_model(rig, rig.marker_vertices, a0, None, method, retarget_params=prm,
-                           actor_blendshapes=rig.deltas[:, rig.marker_vertices])
-        np.testing.assert_allclose(m.retarget(X), W, atol=2e-3)
+    m = rb.build_model(rig, rig.marker_vertices, a0, None, "rbf", retarget_params=prm)
+    np.testing.assert_allclose(m.dp, rig.deltas[:, rig.marker_vertices], atol=1e-6)
+    np.testing.assert_allclose(m.retarget(X), W, atol=2e-3)
+    with pytest.raises(InputError, match="unknown retargeting method 'parallel'"):
+        rb.build_model(rig, rig.marker_vertices, a0, None, "parallel", retarget_params=prm)
 
 
-# ------------------------------------------------------------------ retargeting-step fixes (issue 7, round 3)
+# ------------------------------------------------------------------ retargeting step: joint rigid fit, neutral
 def test_rigid_jacobian_is_the_cross_product():
     rng = np.random.default_rng(7)
     ref = rng.normal(size=(9, 3)) * 40
@@ -674,10 +665,11 @@ def test_stage_ict_actor_own_rig_template_and_stylized(ict_rig, ict_folder):
     sequences' neutral frames. Own-rig MAE, correlation >= 0.9 on the template and a stylized character for
     the ROM-fit transfer with deformation-transfer guesses, better than the RBF baseline; the faithful
     transfer's shrinkage is measured, not assumed away."""
-    from rigbuild.eval.retarget import retarget_metrics, synthetic_retarget_scene
+    from rigbuild.eval.retarget import retarget_metrics
+    from rigbuild.synth.retarget_scenes import synthetic_retarget_scene
     from rigbuild.retarget.common import average_neutral
     from rigbuild.synth.characters import make_character
-    from rigbuild.synth.markers import load_marker_set
+    from rigbuild.assets.markers import load_marker_set
 
     names, vids = load_marker_set("ict")
     template = ict_rig.with_markers(names, vids)
@@ -699,8 +691,6 @@ def test_stage_ict_actor_own_rig_template_and_stylized(ict_rig, ict_folder):
             out[cname, method] = retarget_metrics(m.retarget(sc["performance"]), m.shape_names, sc["weights"],
                                                   actor.shape_names, sparse)
             dps[cname, method] = m.dp
-    # benchmark (2026-11 round 3): actor rbf 0.016 / 0.979; ribera_fit 0.024 / 0.969; template ribera_fit_dt
-    # 0.932 vs rbf 0.918; stylized 0.931 vs 0.865
     assert out["actor", "rbf"]["weight_mae"] <= 0.025 and out["actor", "rbf"]["mean_correlation"] >= 0.97
     assert out["actor", "ribera_fit"]["weight_mae"] <= 0.035
     for cname in ("template", "stylized"):
@@ -754,26 +744,39 @@ def test_entry_points_write_outputs_and_metrics(tmp_path):
                      rig=str(tmp_path / "char.npz")),
         output=_Named(**out),
         params=_Named(ribera={"mu": 0.0, "lambda_cm": 0.0, "preview_frames": 2}, method="rbf", character="grid",
-                      performance="perf00", neutral_frames=[0], metrics_path=str(tmp_path / "metrics.json")),
+                      performance="perf00", neutral_frames=[0]),
         log=[str(tmp_path / "log.txt")], rule="retarget_ribera", threads=1)
     runpy.run_path("scripts/retarget.py", init_globals={"snakemake": sm})
     w, shape_names, _ = read_weight_curves_csv(out["weights"])
     np.testing.assert_allclose(w, W, atol=1e-3)
+    ev_out = {"metrics": str(tmp_path / "eval" / "retarget_metrics.json"),
+              "details": str(tmp_path / "eval" / "retarget_eval.json")}
     ev = types.SimpleNamespace(
         input=_Named(weights=out["weights"], truth=str(tmp_path / "truth.npz"), actor_rig=str(tmp_path / "actor.npz")),
-        output=_Named(metrics=str(tmp_path / "out" / "eval.json")),
-        params=_Named(method="rbf", character="grid", metrics_path=str(tmp_path / "metrics.json")),
-        log=[str(tmp_path / "log_eval.txt")], rule="retarget_ribera_eval")
-    runpy.run_path("scripts/retarget_eval.py", init_globals={"snakemake": ev})
-    metrics = json.loads((tmp_path / "metrics.json").read_text())["retarget"]
-    assert metrics["rbf_baseline.grid.weight_mae"] < 1e-3
-    assert metrics["rbf_baseline.grid.mean_correlation"] > 0.999
-    assert metrics["rbf_baseline.grid.n_frames"] == 12
+        output=_Named(**ev_out),
+        params=_Named(method="rbf", character="grid", ribera={}),
+        log=[str(tmp_path / "log_eval.txt")], rule="eval_retarget")
+    runpy.run_path("scripts/eval_retarget.py", init_globals={"snakemake": ev})
+    stage = json.loads((tmp_path / "out" / "retarget_metrics.json").read_text())
+    truth = json.loads((tmp_path / "eval" / "retarget_metrics.json").read_text())
+    assert list(stage) == ["retarget"] and list(stage["retarget"]) == ["rbf_baseline"]  # rbf is not the primary
+    assert stage["retarget"]["rbf_baseline"]["grid"]["n_frames"] == 12
+    assert "weight_mae" not in stage["retarget"]["rbf_baseline"]["grid"]  # ground truth only in eval fragments
+    assert truth["retarget"]["rbf_baseline"]["grid"]["weight_mae"] < 1e-3
+    assert truth["retarget"]["rbf_baseline"]["grid"]["mean_correlation"] > 0.999
+    assert set(truth["retarget"]["rbf_baseline"]["grid"]) == {"weight_mae", "mean_correlation", "unobservable_mae"}
+    assert "per_shape_correlation" in json.loads((tmp_path / "eval" / "retarget_eval.json").read_text())
     assert (tmp_path / "out" / "preview.png").stat().st_size > 1000
+    # the primary variant is reported twice: under its own key and as retarget.ribera
+    from rigbuild.io.metrics import flatten_metrics
+    from rigbuild.retarget.methods import method_metrics
+
+    flat = flatten_metrics({"retarget": method_metrics("ribera_fit", "grid", {"n_frames": 12})})
+    assert flat == {"retarget.ribera_fit.grid.n_frames": 12, "retarget.ribera.grid.n_frames": 12}
 
 
 def test_metric_prefixes_primary_variant():
-    from rigbuild.eval.retarget import metric_prefixes
+    from rigbuild.retarget.methods import metric_prefixes
 
     assert metric_prefixes("ribera_fit") == ["ribera_fit", "ribera"]
     assert metric_prefixes("ribera") == ["ribera_faithful"]
@@ -781,3 +784,22 @@ def test_metric_prefixes_primary_variant():
     assert metric_prefixes("rbf") == ["rbf_baseline"]
     with pytest.raises(InputError, match="primary 'rbf'"):
         metric_prefixes("rbf", primary="rbf")
+
+
+def test_params_defaults_have_one_home_and_unknown_keys_fail():
+    from rigbuild.retarget.params import RiberaParams, TransferParams, from_config
+
+    p = from_config(None)
+    assert p.ribera.alpha == TransferParams().alpha and p.ribera.bounds == (0.0, 1.0)
+    assert p.ribera.transfer_params("ribera_fit").guess == "deformation"
+    assert p.ribera.transfer_params("ribera").guess == "rbf"
+    assert from_config({"ribera": {"bounds": [0, 1]}}).ribera.retarget_params().bounds == (0, 1)
+    assert RiberaParams().primary == "ribera_fit"
+    with pytest.raises(InputError, match=r"params.retarget.ribera.lambda_c' \(did you mean 'lambda_cm'\?\)"):
+        from_config({"ribera": {"lambda_c": 0.1}})
+    with pytest.raises(InputError, match="primary 'rbf' is not a Ribera variant"):
+        from_config({"ribera": {"primary": "rbf"}})
+    with pytest.raises(InputError, match="params.retarget.ribera.guess"):
+        from_config({"ribera": {"guess": "tps"}})
+    with pytest.raises(InputError, match=r"params.retarget.riberra' \(did you mean 'ribera'\?\)"):
+        from_config({"riberra": {}})

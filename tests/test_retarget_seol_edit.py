@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from rigbuild.errors import InputError
-from rigbuild.retarget.common import read_weight_curves_csv, write_weight_curves_csv
+from rigbuild.io.curves import read_weight_curves_csv, write_weight_curves_csv
 from rigbuild.retarget.editing import edit_spacetime
 from rigbuild.retarget.seol import SeolSystem, build_pca_prior
 

@@ -144,17 +144,13 @@ def test_guided_flow_recovers_shift_with_guide():
     assert np.median(fb[inner]) < 0.2
 
 
-def test_script_reads_reconstruct_depth_files(tmp_path):
-    """scripts/track.py reads the reconstruct stage's depth npz (pinhole grids) onto the distorted image grid,
+def test_stage_reads_reconstruct_depth_files(tmp_path):
+    """The tracking stage reads the reconstruct stage's depth npz (pinhole grids) onto the distorted image grid,
     and a missing file is an InputError naming the file."""
-    import importlib.util
-
     from rigbuild.io.depth import write_depth
-    from rigbuild.paths import PROJECT_ROOT
+    from rigbuild.track import plots
+    from rigbuild.track import stage as mod
 
-    spec = importlib.util.spec_from_file_location("track_script", PROJECT_ROOT / "scripts" / "track.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
     cams = [_cam("b", dist=(-0.1, 0, 0, 0, 0)), _cam("a")]
     pin = [Camera(c.id, c.width, c.height, c.K, np.zeros(5), c.R, c.t) for c in cams]
     depth = np.stack([np.full((240, 320), 480.0, np.float32), np.full((240, 320), 510.0, np.float32)])
@@ -167,7 +163,7 @@ def test_script_reads_reconstruct_depth_files(tmp_path):
     # report figures of the stage
     rows = [{"frame": f, "dots": 40, "sparse": 900, "flow": 5000, "anchor_matches": 2000, "residual_median_mm": 0.05,
              "residual_p90_mm": 0.2, "lost": f == 2, "reason": ""} for f in range(4)]
-    mod._residual_plot(tmp_path / "residuals.png", rows, "test")
+    plots.residual_plot(tmp_path / "residuals.png", rows, "test")
     import cv2
 
     img = cv2.imread(str(tmp_path / "residuals.png"))

@@ -10,6 +10,7 @@ from rigbuild.errors import InputError
 from rigbuild.geometry.rigid import apply_rigid
 from rigbuild.track.laplacian import vertex_normals
 from rigbuild.track.mesh import build_tracking_mesh
+from rigbuild.track.params import RegistrationParams
 from rigbuild.track.register import label_dots, ray_targets, register_neutral, relabel_dots, require_markers
 
 
@@ -103,7 +104,7 @@ def test_register_neutral_to_warped_actor_scan(head):
     nrm = np.einsum("nk,nkd->nd", b, N[F[tri]])
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     dots = truth[head.marker_vertices][rng.permutation(head.marker_vertices.size)]
-    reg = register_neutral(head, pts, nrm, dots, iterations=10)
+    reg = register_neutral(head, pts, nrm, dots, params=RegistrationParams(iterations=10))
     err = np.linalg.norm(reg.vertices[face] - truth[face], axis=1)
     s, Rs, ts = reg.similarity
     err_sim = np.linalg.norm(apply_rigid(head.neutral[face], Rs, ts, s) - truth[face], axis=1)
@@ -154,7 +155,7 @@ def test_register_neutral_with_stencil_dots_beats_markers_alone(head):
     for spacing in (None, 16.0):
         dv = painted_dot_vertices(head, spacing)
         dots = truth[dv][rng.permutation(dv.size)]
-        reg = register_neutral(head, pts, nrm, dots, iterations=10, dot_vertices=dv)
+        reg = register_neutral(head, pts, nrm, dots, params=RegistrationParams(iterations=10), dot_vertices=dv)
         assert reg.dot_labels.shape == (dv.size,)
         assert np.mean(reg.dot_labels >= 0) > 0.95
         assert reg.markers.shape == (head.marker_vertices.size, 3)

@@ -9,7 +9,7 @@ import pytest
 from rigbuild.camera import Camera, look_at
 from rigbuild.errors import InputError
 from rigbuild.track.matches import ViewFrame
-from rigbuild.track.sequence import TrackParams
+from rigbuild.track.params import TrackParams
 
 
 @pytest.fixture(scope="module")

@@ -132,6 +132,23 @@ def test_jobs_ran_as_separate_cluster_processes(e2e_run):
     assert n_jobs >= 5 and len(outs) >= n_jobs - 1  # the `all` target job is local
 
 
+def test_every_file_written_is_a_declared_output(e2e_run):
+    """No job writes a file its rule does not declare: every file under results/ is an output listed by
+    `snakemake --summary`, a file inside a declared directory output, or a rule's benchmark record."""
+    tmp = e2e_run["tmp"]
+    r = subprocess.run(_cmd(tmp, "--summary"), capture_output=True, text=True, env=_env(), cwd=tmp, timeout=600)
+    assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
+    declared = {line.split("\t")[0] for line in r.stdout.splitlines()[1:] if line.strip()}
+    dirs = [d for d in declared if (tmp / d).is_dir()]
+    undeclared = []
+    for p in (tmp / "results").rglob("*"):
+        rel = str(p.relative_to(tmp))
+        if p.is_file() and rel not in declared and not any(rel.startswith(d + "/") for d in dirs) \
+                and "/benchmarks/" not in rel:
+            undeclared.append(rel)
+    assert len(declared) > 50 and not undeclared, undeclared[:20]
+
+
 def test_metrics_hold_every_stage(e2e_run):
     flat = flatten_metrics(json.loads((e2e_run["results"] / "metrics.json").read_text()))
     for key in ("calibration.rms_px", "calibration.center_error_mm", "reconstruction.median_error_mm",

@@ -6,14 +6,12 @@ The board's corner coordinates are fixed (mm, from ``BoardSpec``), which sets th
 reference camera's pose is fixed, which sets the world frame. Residuals are reprojection errors in
 pixels under a robust loss (scipy ``soft_l1``/``huber``/``cauchy``, scale ``f_scale`` px).
 
-Solver choice (measured, ``benchmarks/bench_calibrate.py`` -> ``benchmarks/out/calibrate.json``):
+Solver choice (why, with the measurements: docs/decisions.md):
 
-* scipy ``least_squares`` (trf, ``jac_sparsity``, ``x_scale="jac"``, lsmr trust-region solves) was tried
-  first: on 8 cameras x 20 poses it used all 200 function evaluations (13-30 s) without meeting its
-  tolerances, because the inexact lsmr steps on this badly scaled problem (focal lengths ~1e3 next to
-  distortion ~1e-1) make slow progress. The Levenberg-Marquardt below, with the same robust losses, a
-  dense Cholesky of the small normal matrix and a grouped central-difference Jacobian, converges on the
-  same problem to the same minimum (RMS equal to 1e-6 px) in ~1.3 s (the benchmark reruns both).
+* a Levenberg-Marquardt of our own (the same robust losses, a dense Cholesky of the small normal matrix,
+  a grouped central-difference Jacobian) rather than scipy ``least_squares`` (trf with lsmr steps), whose
+  inexact steps make slow progress on this badly scaled problem (focal lengths ~1e3 next to distortion
+  ~1e-1); ``benchmarks/bench_calibrate.py`` reruns both.
 * pycolmap's bundle adjuster was not used: it optimizes free 3-D points and per-image poses, while here
   each corner belongs to a rigid board (one 6-DoF pose per instant) and each camera keeps one pose over
   all instants; expressing that needs a COLMAP rig with the board as the static scene. Its camera models
@@ -28,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse import lil_matrix
 
+from rigbuild.calibrate.params import ROBUST_LOSSES
 from rigbuild.calibrate.rotations import rodrigues
 from rigbuild.progress import progress
 
@@ -117,9 +116,6 @@ def jacobian_sparsity(obs: Observations, n_cams: int, n_views: int, free: np.nda
     return S
 
 
-ROBUST_LOSSES = ("linear", "soft_l1", "huber", "cauchy")
-
-
 def robust_weights(sq_err: np.ndarray, loss: str, f_scale: float) -> tuple[np.ndarray, np.ndarray]:
     """Per-observation robust cost and IRLS weight for squared reprojection errors (N,) px^2.
 
@@ -139,6 +135,114 @@ def robust_weights(sq_err: np.ndarray, loss: str, f_scale: float) -> tuple[np.nd
     else:
         raise ValueError(f"unknown robust loss '{loss}' (use one of {ROBUST_LOSSES})")
     return f_scale ** 2 * rho, drho
+
+
+class _BundleProblem:
+    """Residuals, grouped central-difference Jacobian and normal equations of one adjustment.
+
+    full : (C * 15 + V * 6,) all unknowns (cameras then boards); free : indices of the unknowns solved for.
+    """
+
+    def __init__(self, obs: Observations, board_points: np.ndarray, C: int, V: int, free: np.ndarray):
+        self.obs, self.board_points, self.C, self.V, self.free = obs, board_points, C, V, free
+        self.n = len(obs)
+        self.nfev = 0
+        full_to_free = -np.ones(C * N_CAM + V * N_BOARD, dtype=np.int64)
+        full_to_free[free] = np.arange(free.size)
+        # column of each (observation, local unknown): 15 camera unknowns then 6 board unknowns
+        cols_full = np.concatenate([obs.cam[:, None] * N_CAM + np.arange(N_CAM),
+                                    C * N_CAM + obs.view[:, None] * N_BOARD + np.arange(N_BOARD)], axis=1)
+        self.cols = full_to_free[cols_full]  # (n, 21), -1 = fixed
+        self.keep = self.cols >= 0
+
+    def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        C, V = self.C, self.V
+        return x[: C * N_CAM].reshape(C, N_CAM), x[C * N_CAM:].reshape(V, N_BOARD)
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """(n, 2) reprojection residuals, px."""
+        self.nfev += 1
+        cp, bp = self.split(x)
+        return project(cp, bp, self.obs, self.board_points) - self.obs.uv
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """(n, 2, 21) derivatives of each observation's residual w.r.t. its 21 local unknowns."""
+        C, V, obs = self.C, self.V, self.obs
+        J = np.empty((self.n, 2, N_CAM + N_BOARD))
+        for j in range(N_CAM + N_BOARD):
+            if j < N_CAM:
+                idx = np.arange(C) * N_CAM + j
+            else:
+                idx = C * N_CAM + np.arange(V) * N_BOARD + (j - N_CAM)
+            h = 1e-6 * np.maximum(1.0, np.abs(x[idx]))
+            xp = x.copy()
+            xp[idx] += h
+            xm = x.copy()
+            xm[idx] -= h
+            hh = h[obs.cam] if j < N_CAM else h[obs.view]
+            J[:, :, j] = (self.residuals(xp) - self.residuals(xm)) / (2 * hh[:, None])
+        return J
+
+    def normal_equations(self, x: np.ndarray, r: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``J^T W J`` (free x free) and ``J^T W r`` (free,) at ``x``."""
+        cols, keep = self.cols, self.keep
+        J = self.jacobian(x)
+        Jw = J * w[:, None, None]
+        # per observation 21 x 21 block of J^T W J and 21-vector of J^T W r, scattered into free unknowns
+        blocks = np.einsum("nki,nkj->nij", Jw, J)
+        grads = np.einsum("nki,nk->ni", Jw, r)
+        ii = np.broadcast_to(cols[:, :, None], blocks.shape)
+        jj = np.broadcast_to(cols[:, None, :], blocks.shape)
+        m = keep[:, :, None] & keep[:, None, :]
+        nf = self.free.size
+        H = np.bincount(ii[m] * nf + jj[m], weights=blocks[m], minlength=nf * nf).reshape(nf, nf)
+        g = np.bincount(cols[keep], weights=grads[keep], minlength=nf)
+        return H, g
+
+
+def _levenberg_marquardt(problem: _BundleProblem, full: np.ndarray, loss: str, f_scale_px: float,
+                         max_iterations: int, tol: float) -> tuple[np.ndarray, float, int, str]:
+    """Damped IRLS Gauss-Newton from ``full``; returns (solution, initial RMS px, status, message)."""
+    free = problem.free
+    r = problem.residuals(full)
+    initial_rms = float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
+    costs, w = robust_weights(np.sum(r ** 2, axis=1), loss, f_scale_px)
+    cost = costs.sum()
+    lam = 1e-3
+    status, message = 0, "maximum number of iterations reached"
+    for _ in progress(range(max_iterations), "bundle adjustment", unit="iteration"):
+        H, g = problem.normal_equations(full, r, w)
+        diag = np.diag(H).copy()
+        diag[diag <= 0] = 1.0
+        improved = False
+        while lam < 1e12:
+            A = H + lam * np.diag(diag)
+            try:
+                L = np.linalg.cholesky(A)
+                dx = -np.linalg.solve(L.T, np.linalg.solve(L, g))
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            trial = full.copy()
+            trial[free] += dx
+            r_t = problem.residuals(trial)
+            costs_t, w_t = robust_weights(np.sum(r_t ** 2, axis=1), loss, f_scale_px)
+            cost_t = costs_t.sum()
+            if np.isfinite(cost_t) and cost_t < cost:
+                improved = True
+                rel = (cost - cost_t) / max(cost, 1e-300)
+                step = np.linalg.norm(dx) / (np.linalg.norm(full[free]) + 1e-300)
+                full, r, w, cost = trial, r_t, w_t, cost_t
+                lam = max(lam / 10, 1e-12)
+                break
+            lam *= 10
+        if not improved:
+            status, message = 2, "no further decrease of the cost (converged to numerical precision)"
+            break
+        if rel < tol or step < tol:
+            status, message = 1, f"converged (relative cost decrease {rel:.1e}, relative step {step:.1e})"
+            break
+    return full, initial_rms, status, message
 
 
 def bundle_adjust(
@@ -169,103 +273,15 @@ def bundle_adjust(
     """
     t0 = time.perf_counter()
     C, V = cam_params.shape[0], board_params.shape[0]
-    n = len(obs)
     full = np.concatenate([cam_params.ravel(), board_params.ravel()]).astype(np.float64)
     fixed = np.zeros(full.size, dtype=bool)
     for c in fixed_pose_cams:
         fixed[c * N_CAM: c * N_CAM + 6] = True
     if fix_k3:
         fixed[np.arange(C) * N_CAM + K3_INDEX] = True
-    free = np.flatnonzero(~fixed)
-    full_to_free = -np.ones(full.size, dtype=np.int64)
-    full_to_free[free] = np.arange(free.size)
-    # column of each (observation, local unknown): 15 camera unknowns then 6 board unknowns
-    cols_full = np.concatenate([obs.cam[:, None] * N_CAM + np.arange(N_CAM),
-                                C * N_CAM + obs.view[:, None] * N_BOARD + np.arange(N_BOARD)], axis=1)
-    cols = full_to_free[cols_full]  # (n, 21), -1 = fixed
-    keep = cols >= 0
-    uv = obs.uv
-    nfev = 0
-
-    def split(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return x[: C * N_CAM].reshape(C, N_CAM), x[C * N_CAM:].reshape(V, N_BOARD)
-
-    def residuals(x: np.ndarray) -> np.ndarray:
-        nonlocal nfev
-        nfev += 1
-        cp, bp = split(x)
-        return project(cp, bp, obs, board_points) - uv
-
-    def jacobian(x: np.ndarray) -> np.ndarray:
-        """(n, 2, 21) derivatives of each observation's residual w.r.t. its 21 local unknowns."""
-        J = np.empty((n, 2, N_CAM + N_BOARD))
-        for j in range(N_CAM + N_BOARD):
-            if j < N_CAM:
-                idx = np.arange(C) * N_CAM + j
-            else:
-                idx = C * N_CAM + np.arange(V) * N_BOARD + (j - N_CAM)
-            h = 1e-6 * np.maximum(1.0, np.abs(x[idx]))
-            xp = x.copy()
-            xp[idx] += h
-            xm = x.copy()
-            xm[idx] -= h
-            hh = h[obs.cam] if j < N_CAM else h[obs.view]
-            J[:, :, j] = (residuals(xp) - residuals(xm)) / (2 * hh[:, None])
-        return J
-
-    def normal_equations(x: np.ndarray, r: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        J = jacobian(x)
-        Jw = J * w[:, None, None]
-        # per observation 21 x 21 block of J^T W J and 21-vector of J^T W r, scattered into free unknowns
-        blocks = np.einsum("nki,nkj->nij", Jw, J)
-        grads = np.einsum("nki,nk->ni", Jw, r)
-        ii = np.broadcast_to(cols[:, :, None], blocks.shape)
-        jj = np.broadcast_to(cols[:, None, :], blocks.shape)
-        m = keep[:, :, None] & keep[:, None, :]
-        nf = free.size
-        H = np.bincount(ii[m] * nf + jj[m], weights=blocks[m], minlength=nf * nf).reshape(nf, nf)
-        g = np.bincount(cols[keep], weights=grads[keep], minlength=nf)
-        return H, g
-
-    r = residuals(full)
-    initial_rms = float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
-    costs, w = robust_weights(np.sum(r ** 2, axis=1), loss, f_scale_px)
-    cost = costs.sum()
-    lam = 1e-3
-    status, message = 0, "maximum number of iterations reached"
-    for _ in progress(range(max_iterations), "bundle adjustment", unit="iteration"):
-        H, g = normal_equations(full, r, w)
-        diag = np.diag(H).copy()
-        diag[diag <= 0] = 1.0
-        improved = False
-        while lam < 1e12:
-            A = H + lam * np.diag(diag)
-            try:
-                L = np.linalg.cholesky(A)
-                dx = -np.linalg.solve(L.T, np.linalg.solve(L, g))
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
-            trial = full.copy()
-            trial[free] += dx
-            r_t = residuals(trial)
-            costs_t, w_t = robust_weights(np.sum(r_t ** 2, axis=1), loss, f_scale_px)
-            cost_t = costs_t.sum()
-            if np.isfinite(cost_t) and cost_t < cost:
-                improved = True
-                rel = (cost - cost_t) / max(cost, 1e-300)
-                step = np.linalg.norm(dx) / (np.linalg.norm(full[free]) + 1e-300)
-                full, r, w, cost = trial, r_t, w_t, cost_t
-                lam = max(lam / 10, 1e-12)
-                break
-            lam *= 10
-        if not improved:
-            status, message = 2, "no further decrease of the cost (converged to numerical precision)"
-            break
-        if rel < tol or step < tol:
-            status, message = 1, f"converged (relative cost decrease {rel:.1e}, relative step {step:.1e})"
-            break
-    cp, bp = split(full)
-    res = project(cp, bp, obs, board_points) - uv
+    problem = _BundleProblem(obs, board_points, C, V, np.flatnonzero(~fixed))
+    full, initial_rms, status, message = _levenberg_marquardt(problem, full, loss, f_scale_px, max_iterations, tol)
+    cp, bp = problem.split(full)
+    res = project(cp, bp, obs, board_points) - obs.uv
     return BundleResult(cp.copy(), bp.copy(), res, float(np.sqrt(np.mean(np.sum(res ** 2, axis=1)))),
-                        initial_rms, nfev, status, message, time.perf_counter() - t0)
+                        initial_rms, problem.nfev, status, message, time.perf_counter() - t0)

@@ -20,40 +20,12 @@ from rigbuild.calibrate import qa
 from rigbuild.calibrate.bundle import N_CAM, BundleResult, Observations, bundle_adjust
 from rigbuild.calibrate.detect import Detection, is_usable
 from rigbuild.calibrate.intrinsics import calibrate_intrinsics, calibration_flags
+from rigbuild.calibrate.params import CalibrationOptions
 from rigbuild.calibrate.posegraph import PoseGraph, build_pose_graph
 from rigbuild.calibrate.rotations import rodrigues, rotation_to_rvec
 from rigbuild.camera import Camera
 from rigbuild.progress import progress
 from rigbuild.session import BoardSpec
-
-
-@dataclass
-class CalibrationOptions:
-    """Parameters (``config["params"]["calibrate"]``).
-
-    min_corners : images with fewer detected corners are dropped (and listed).
-    min_images : QA gate: usable images each camera needs.
-    max_rms_px : QA gate: largest allowed per-camera reprojection RMS after the adjustment.
-    robust_loss, robust_scale_px : scipy loss (``soft_l1``, ``huber``, ``cauchy``, ``linear``) and scale (px).
-    fix_k3 : hold k3 = 0 (4-parameter Brown model) - for narrow lenses or few images.
-    reference_camera : world-frame camera (None = first camera).
-    max_iterations : iteration cap of the adjustment (Levenberg-Marquardt steps).
-    """
-
-    min_corners: int = 8
-    min_images: int = 4
-    max_rms_px: float = 0.5
-    robust_loss: str = "soft_l1"
-    robust_scale_px: float = 1.0
-    fix_k3: bool = False
-    reference_camera: str | None = None
-    max_iterations: int = 100
-
-    @classmethod
-    def from_params(cls, params: Mapping | None) -> "CalibrationOptions":
-        params = dict(params or {})
-        known = {k: params[k] for k in cls.__dataclass_fields__ if k in params}
-        return cls(**known)
 
 
 @dataclass

@@ -3,11 +3,12 @@
 Outputs (all written to a staging folder first and moved into place only when everything succeeded,
 so a failure - bad input or a QA gate - leaves nothing half-written):
 
-- ``cameras.json`` (same schema as ``ground_truth/cameras.json``; world = reference camera frame, mm)
+- ``cameras.json`` (rigbuild.io.cameras schema, as the generator writes it; world = reference camera frame, mm)
 - ``colmap/cameras.txt, images.txt, points3D.txt`` (board corners as 3-D points, loadable by pycolmap)
 - ``reprojection_per_image.csv``, ``reprojection_per_camera.csv``
 - ``residuals.png``, ``camera_layout.png``
-- ``calib_metrics.json``
+- ``calib_metrics.json``: the metrics fragment ``{"calibration": {...}}`` (no ground truth; the
+  ``eval_calibration`` rule compares ``cameras.json`` with the ground truth)
 """
 
 from __future__ import annotations
@@ -24,11 +25,13 @@ from typing import Any, Mapping
 import numpy as np
 
 from rigbuild.calibrate.detect import count_corners, detect_images, session_images
-from rigbuild.calibrate.rig import CalibrationOptions, RigCalibration, calibrate_rig
+from rigbuild.calibrate.params import CalibrationOptions, from_config
+from rigbuild.calibrate.rig import RigCalibration, calibrate_rig
 from rigbuild.errors import InputError
-from rigbuild.io.atomic import write_json, write_text
+from rigbuild.io.atomic import write_text
 from rigbuild.io.cameras import write_cameras
 from rigbuild.io.colmap import write_colmap_text
+from rigbuild.io.metrics import write_metrics_fragment
 from rigbuild.session import SessionSpec, read_session
 
 OUTPUT_FILES = (
@@ -44,18 +47,19 @@ OUTPUT_FILES = (
 )
 
 
-def calibrate_session(session_dir: str | os.PathLike, params: Mapping[str, Any] | None = None
+def calibrate_session(session_dir: str | os.PathLike, params: CalibrationOptions | Mapping | None = None
                       ) -> tuple[SessionSpec, RigCalibration]:
     """Detect the board in every ``calib/<cam>/<n>.png`` of a session and calibrate the rig.
 
-    params : ``config["params"]["calibrate"]`` (see :class:`CalibrationOptions`; plus ``subpix_window``).
+    params : the stage's parameters (a mapping goes through :func:`rigbuild.calibrate.params.from_config`;
+        None = defaults).
     Raises InputError (bad images, a board spec that matches no image) or QualityGateError (QA gates).
     """
     spec = read_session(session_dir)
-    params = dict(params or {})
+    params = params if isinstance(params, CalibrationOptions) else from_config(params)
     images = session_images(spec)
     t0 = time.perf_counter()
-    detections = detect_images(images, spec.board, (spec.width, spec.height), params.get("subpix_window"))
+    detections = detect_images(images, spec.board, (spec.width, spec.height), params.subpix_window)
     t_detect = time.perf_counter() - t0
     if count_corners(detections) == 0:
         n = sum(len(v) for v in images.values())
@@ -65,7 +69,7 @@ def calibrate_session(session_dir: str | os.PathLike, params: Mapping[str, Any] 
                          fix="check board.type, squares_x/squares_y and dictionary against the printed board")
     names = {c: {v: str(p.relative_to(spec.root)) for v, p in views.items()} for c, views in images.items()}
     result = calibrate_rig(detections, spec.board, (spec.width, spec.height),
-                           CalibrationOptions.from_params(params), image_names=names)
+                           params, image_names=names)
     result.seconds["detect"] = t_detect
     result.seconds["total"] += t_detect
     return spec, result
@@ -169,7 +173,7 @@ def _save_fig(fig, path) -> None:
 
 
 def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
-    """The ``calibration`` block of metrics.json from a result (no ground truth)."""
+    """The ``calibration`` block of the stage's metrics fragment (no ground truth)."""
     cam_rms = result.camera_rms()
     return {
         "rms_px": result.rms_px,
@@ -188,18 +192,16 @@ def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
     }
 
 
-def write_outputs(result: RigCalibration, out_dir: str | os.PathLike, session: str,
-                  extra_metrics: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def write_outputs(result: RigCalibration, out_dir: str | os.PathLike, session: str) -> dict[str, Any]:
     """Write every calibration output into ``out_dir`` (staged, then moved; see module doc).
 
-    Returns the metrics dict written to ``calib_metrics.json``.
+    Returns the metrics written to ``calib_metrics.json`` (the ``calibration`` block of the fragment).
     """
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.staging.", dir=out_dir.parent))
     try:
         metrics = calibration_metrics(result)
-        metrics.update(extra_metrics or {})
         write_cameras(stage / "cameras.json", result.cameras, session=session,
                       world_frame=f"camera {result.reference} (R = I, t = 0); metric scale from the board")
         tr = colmap_tracks(result)
@@ -212,7 +214,7 @@ def write_outputs(result: RigCalibration, out_dir: str | os.PathLike, session: s
         write_text(stage / "reprojection_per_camera.csv", _csv_text(result.per_camera_rows()))
         plot_residuals(result, stage / "residuals.png")
         plot_camera_layout(result, stage / "camera_layout.png")
-        write_json(stage / "calib_metrics.json", metrics)
+        write_metrics_fragment(stage / "calib_metrics.json", "calibration", metrics)
         for rel in OUTPUT_FILES:
             dst = out_dir / rel
             dst.parent.mkdir(parents=True, exist_ok=True)
@@ -221,27 +223,3 @@ def write_outputs(result: RigCalibration, out_dir: str | os.PathLike, session: s
         shutil.rmtree(stage, ignore_errors=True)
     return metrics
 
-
-
-def run_calibration(session_dir: str | os.PathLike, out_dir: str | os.PathLike, params: Mapping[str, Any] | None,
-                    metrics_path: str | os.PathLike | None = None) -> dict[str, Any]:
-    """Calibrate a session, write ``out_dir`` and merge ``calibration.*`` into ``metrics_path``.
-
-    If the session has ``ground_truth/cameras.json`` (synthetic sessions), the errors against it
-    (:func:`rigbuild.eval.calibration.compare_cameras`) are added to the metrics - reporting only; the
-    calibration itself never reads ground truth. Returns the metrics.
-    """
-    from rigbuild.io.metrics import merge_metrics
-
-    spec, result = calibrate_session(session_dir, params)
-    extra: dict[str, Any] = {}
-    gt_path = spec.ground_truth_dir / "cameras.json"
-    if gt_path.exists():
-        from rigbuild.eval.calibration import compare_cameras
-        from rigbuild.io.cameras import read_cameras
-
-        extra = compare_cameras(result.cameras, read_cameras(gt_path))
-    metrics = write_outputs(result, out_dir, spec.name, extra)
-    if metrics_path is not None:
-        merge_metrics(metrics_path, "calibration", metrics)
-    return metrics

@@ -104,3 +104,14 @@ def corner_error_summary(errors: np.ndarray) -> dict[str, float]:
     n = np.linalg.norm(e, axis=1)
     return {"rms": float(np.sqrt(np.mean(n ** 2))), "bias_u": float(e[:, 0].mean()), "bias_v": float(e[:, 1].mean()),
             "p99": float(np.percentile(n, 99)), "max": float(n.max()), "n": int(len(e))}
+
+
+def run_eval_calibration(cameras_json, truth_json, out_path) -> dict[str, float]:
+    """Rule ``eval_calibration``: calibrated ``cameras.json`` vs ``ground_truth/cameras.json`` ->
+    the fragment ``{"calibration": compare_cameras(...)}`` at ``out_path``; returns the errors."""
+    from rigbuild.io.cameras import read_cameras
+    from rigbuild.io.metrics import write_metrics_fragment
+
+    errors = compare_cameras(read_cameras(cameras_json), read_cameras(truth_json))
+    write_metrics_fragment(out_path, "calibration", errors)
+    return errors

@@ -1,6 +1,10 @@
 """Ground-truth evaluation of the blendshape personalization (synthetic sessions only).
 
-Metrics (``personalization.<key>`` in metrics.json):
+Rule ``eval_personalize`` (:func:`run_eval_personalize`) reads the personalize stage's ``fit.npz`` and
+``weights.npz``, the calibrated cameras and the session's ``ground_truth/`` (``cameras.json``,
+``actor_rig.npz``, ``rom/<seq>.npz``) and writes the fragment ``results/<session>/eval/personalization_metrics.json``.
+
+Metrics (``personalization.<key>`` in metrics.json; the residuals come from the stage itself):
 
 - ``residual_reduction``: ``1 - rms_personalized / rms_initial`` of the fit residual on the fitting
   frames (weights and rigid motion fitted to each rig; per-vertex distances weighted by the tracking
@@ -20,7 +24,13 @@ the raw numbers.
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
+
+#: the fragment's top-level key in metrics.json
+METRICS_KEY = "personalization"
 
 
 def rms_shape_error(deltas: np.ndarray, gt_deltas: np.ndarray, vertices: np.ndarray | None = None) -> float:
@@ -145,3 +155,37 @@ def ground_truth_metrics(gt_dir, shape_names: list[str], initial_deltas: np.ndar
     if heldout_weights is not None:
         m["heldout_weight_mae"] = weight_mae(heldout_weights, _gt_weights(gt_dir, shape_names, heldout_seqs, heldout_frames))
     return m
+
+
+def evaluate_personalization(gt_dir: str | os.PathLike, weights_npz: str | os.PathLike, fit_npz: str | os.PathLike,
+                             cameras_json: str | os.PathLike | None = None) -> dict:
+    """Ground-truth metrics of a personalize job's outputs (``results/<session>/personalize/weights.npz`` and
+    ``fit.npz``), as :func:`ground_truth_metrics`. With ``cameras_json`` (the calibrated cameras) the shapes
+    are first mapped from the calibrated world into the ground-truth world (similarity on the camera centres)."""
+    with np.load(weights_npz, allow_pickle=False) as z:
+        shape_names = [str(n) for n in z["shape_names"]]
+        seqs, frames = z["sequence"], z["frame"]
+        heldout_seqs = z["heldout_sequence"] if "heldout_sequence" in z else None
+        heldout_frames = z["heldout_frame"] if "heldout_frame" in z else None
+    with np.load(fit_npz, allow_pickle=False) as z:
+        D0, D1, weights = z["initial_deltas"], z["deltas"], z["weights"]
+        heldout_weights = z["heldout_weights"] if "heldout_weights" in z else None
+        region = z["fit_vertices"] if "fit_vertices" in z else None
+    if cameras_json is not None:
+        from rigbuild.eval.frames import calibrated_to_ground_truth, vectors_to_ground_truth
+
+        sim = calibrated_to_ground_truth(gt_dir, cameras_json)
+        D0, D1 = vectors_to_ground_truth(D0, sim), vectors_to_ground_truth(D1, sim)
+    return ground_truth_metrics(gt_dir, shape_names, D0, D1, region, weights, seqs, frames, heldout_weights,
+                                heldout_seqs, heldout_frames)
+
+
+def run_eval_personalize(gt_dir: str | os.PathLike, weights_npz: str | os.PathLike, fit_npz: str | os.PathLike,
+                         cameras_json: str | os.PathLike | None, metrics_path: str | os.PathLike) -> dict:
+    """Rule ``eval_personalize``: :func:`evaluate_personalization` written as the fragment
+    ``{"personalization": {...}}`` at ``metrics_path``; returns the metrics."""
+    from rigbuild.io.metrics import write_metrics_fragment
+
+    metrics = evaluate_personalization(Path(gt_dir), weights_npz, fit_npz, cameras_json)
+    write_metrics_fragment(metrics_path, METRICS_KEY, metrics)
+    return metrics

@@ -128,26 +128,24 @@ def align_to_ground_truth(estimated: Sequence[Camera], truth: Sequence[Camera]) 
 class SequenceEvaluator:
     """Evaluates each reconstructed frame of one ROM sequence of a synthetic session.
 
-    Reads ``ground_truth/rom/<sequence>.npz`` (vertices per frame, ``frames``), ``ground_truth/actor_rig.npz``
-    (faces, face region) and ``ground_truth/cameras.json``; reconstructions (in the calibrated world) are
-    mapped to the ground-truth world by :func:`align_to_ground_truth` before measuring.
+    rom_npz : ``ground_truth/rom/<sequence>.npz`` (vertices per frame, ``frames``); actor_rig_npz :
+    ``ground_truth/actor_rig.npz`` (faces, face region); truth_cameras_json : ``ground_truth/cameras.json``;
+    cameras : the calibrated cameras (session order). Reconstructions (in the calibrated world) are mapped
+    to the ground-truth world by :func:`align_to_ground_truth` before measuring.
     """
 
-    def __init__(self, session_root, sequence: str, cameras: Sequence[Camera], min_cameras: int = 2,
+    def __init__(self, rom_npz, actor_rig_npz, truth_cameras_json, cameras: Sequence[Camera], min_cameras: int = 2,
                  completeness_mm: float = 1.0):
-        from pathlib import Path
-
         from rigbuild.io.cameras import read_cameras
         from rigbuild.io.rigs import read_rig_npz
 
-        gt = Path(session_root) / "ground_truth"
-        with np.load(gt / "rom" / f"{sequence}.npz", allow_pickle=False) as z:
+        with np.load(rom_npz, allow_pickle=False) as z:
             self.vertices = z["vertices"].astype(np.float64)
             self.frames = [int(f) for f in z["frames"]] if "frames" in z.files else list(range(len(self.vertices)))
-        rig = read_rig_npz(gt / "actor_rig.npz")
+        rig = read_rig_npz(actor_rig_npz)
         self.faces = rig.faces
         self.face_vertices = rig.face_vertices
-        self.gt_cameras = read_cameras(gt / "cameras.json")
+        self.gt_cameras = read_cameras(truth_cameras_json)
         self.s, self.R, self.t = align_to_ground_truth(cameras, self.gt_cameras)
         self.min_cameras = min_cameras
         self.completeness_mm = completeness_mm
@@ -156,18 +154,13 @@ class SequenceEvaluator:
         self._complete: list[float] = []
         self._n: list[int] = []
 
-    @staticmethod
-    def available(session_root, sequence: str) -> bool:
-        from pathlib import Path
-
-        gt = Path(session_root) / "ground_truth"
-        return all((gt / p).exists() for p in (f"rom/{sequence}.npz", "actor_rig.npz", "cameras.json"))
-
     def to_ground_truth(self, X: np.ndarray) -> np.ndarray:
         return self.s * np.asarray(X, float) @ self.R.T + self.t
 
     def __call__(self, frame: int, rec) -> dict:
-        """Evaluate a :class:`rigbuild.reconstruct.frame.FrameReconstruction` of ``frame``."""
+        """Evaluate the reconstruction of ``frame``: anything with ``mesh_vertices`` (V, 3), ``mesh_faces``
+        (F, 3) and ``points`` (P, 3) in the calibrated world, mm (a ``FrameReconstruction``, or the frame's
+        ``geometry/<frame>.npz``)."""
         i = self.frames.index(int(frame))
         r = evaluate_frame(self.vertices[i], self.faces, self.face_vertices, self.gt_cameras,
                            self.to_ground_truth(rec.mesh_vertices), rec.mesh_faces, self.to_ground_truth(rec.points),
@@ -197,3 +190,80 @@ class SequenceEvaluator:
             "frames_evaluated": len(pf),
             "alignment_scale": self.s,
         }
+
+
+def sequence_errors(per_frame: Sequence[dict]) -> dict:
+    """``reconstruction.sequences.<seq>.*`` from the evaluated frames (frame order): the worst frame's
+    ``median_error_mm`` / ``p90_error_mm`` / ``completeness`` (the acceptance is per frame), the means over
+    frames (``mean_*``), the worst ``point_median_error_mm`` and ``frames_evaluated``; {} without frames."""
+    ev = list(per_frame)
+    if not ev:
+        return {}
+    return {
+        "median_error_mm": float(max(e["median_error_mm"] for e in ev)),
+        "p90_error_mm": float(max(e["p90_error_mm"] for e in ev)),
+        "completeness": float(min(e["completeness"] for e in ev)),
+        "mean_median_error_mm": float(np.mean([e["median_error_mm"] for e in ev])),
+        "mean_p90_error_mm": float(np.mean([e["p90_error_mm"] for e in ev])),
+        "mean_completeness": float(np.mean([e["completeness"] for e in ev])),
+        "point_median_error_mm": float(max(e["point_median_error_mm"] for e in ev)),
+        "frames_evaluated": len(ev),
+    }
+
+
+def pool_sequence_errors(per_seq: dict) -> dict:
+    """Session-level ``reconstruction.*`` acceptance keys: the worst sequence's ``median_error_mm``,
+    ``p90_error_mm`` and ``completeness`` over the sequences that have them ({} if none)."""
+    ev = [v for v in per_seq.values() if "median_error_mm" in v]
+    if not ev:
+        return {}
+    return {"median_error_mm": float(max(v["median_error_mm"] for v in ev)),
+            "p90_error_mm": float(max(v["p90_error_mm"] for v in ev)),
+            "completeness": float(min(v["completeness"] for v in ev))}
+
+
+def run_eval_reconstruction_sequence(session_yaml, sequence: str, cameras_json, record_paths, geometry_paths,
+                                     rom_npz, actor_rig_npz, truth_cameras_json, fragment_path, detail_path,
+                                     log=print) -> dict:
+    """Rule ``eval_reconstruction_sequence``: every reconstructed frame of a sequence vs its ground-truth mesh.
+
+    record_paths, geometry_paths : per frame ``frames/<f>.json`` (skipped frames are not evaluated) and
+    ``geometry/<f>.npz`` (same order). Writes the fragment ``{"reconstruction": {"sequences": {<seq>:
+    sequence_errors}}}`` at ``fragment_path`` and ``{"per_frame": {<f>: errors}, "ground_truth":
+    sequence_errors}`` at ``detail_path``; returns the sequence's errors.
+    """
+    import json
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from rigbuild.io.atomic import write_json
+    from rigbuild.io.cameras import read_cameras
+    from rigbuild.io.metrics import write_metrics_fragment
+    from rigbuild.session import read_session
+
+    spec = read_session(Path(session_yaml).parent)
+    by_id = {c.id: c for c in read_cameras(cameras_json)}
+    evaluator = SequenceEvaluator(rom_npz, actor_rig_npz, truth_cameras_json, [by_id[c] for c in spec.cameras])
+    records = [json.loads(Path(p).read_text()) for p in record_paths]
+    per_frame: dict[int, dict] = {}
+    for rec, geo in sorted(zip(records, geometry_paths), key=lambda rg: rg[0]["frame"]):
+        if rec.get("skipped"):
+            continue
+        with np.load(geo, allow_pickle=False) as z:
+            ev = evaluator(rec["frame"], SimpleNamespace(**{k: z[k] for k in ("points", "mesh_vertices", "mesh_faces")}))
+        per_frame[int(rec["frame"])] = ev
+        log(f"{sequence} frame {rec['frame']} vs ground truth: median {ev['median_error_mm']:.3f} mm, "
+            f"p90 {ev['p90_error_mm']:.3f} mm, completeness {ev['completeness']:.3f}")
+    errors = sequence_errors(list(per_frame.values()))
+    write_json(detail_path, {"per_frame": {str(f): e for f, e in per_frame.items()}, "ground_truth": errors})
+    write_metrics_fragment(fragment_path, "reconstruction", {"sequences": {sequence: errors}} if errors else {})
+    return errors
+
+
+def run_eval_reconstruction_pool(fragment_paths, out_path) -> dict:
+    """Rule ``eval_reconstruction``: the sequences' error fragments -> ``{"reconstruction":
+    pool_sequence_errors(...)}`` at ``out_path``."""
+    from rigbuild.io.metrics import gather_metrics, write_metrics_fragment
+
+    per_seq = gather_metrics(fragment_paths).get("reconstruction", {}).get("sequences", {})
+    return write_metrics_fragment(out_path, "reconstruction", pool_sequence_errors(per_seq))["reconstruction"]

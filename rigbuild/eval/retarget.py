@@ -4,40 +4,67 @@ ARKit shape names, so the actor's ground-truth weights apply).
 Metrics per (method, character): ``weight_mae`` over the shapes the markers can observe (a shape that
 moves no marker by 1 mm at weight 1 is reported separately in ``unobservable_mae``), ``mean_correlation``:
 mean per-shape Pearson correlation over active observable shapes (ground truth varies by >= 0.05).
+The weight-curve metric functions (MAE, per-shape correlation, observable and active shapes) are shared with
+:mod:`rigbuild.eval.seol`. :func:`run_eval_retarget` is rule ``eval_retarget``'s runner.
 """
 
 from __future__ import annotations
 
-from typing import Sequence
+import os
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from rigbuild.errors import InputError
-from rigbuild.retarget.common import (
-    active_shapes,
-    mean_correlation,
-    observable_shapes,
-    per_shape_correlation,
-    weight_mae,
-)
 
-#: method name -> metric prefix in metrics.json (``retarget.<prefix>.<character>.*``)
-#: metrics.json prefix (``retarget.<prefix>.<character>.*``) of each method's own numbers
-METHOD_KEYS = {"ribera": "ribera_faithful", "ribera_activation": "ribera_activation", "ribera_fit": "ribera_fit",
-               "rbf": "rbf_baseline", "deformation": "deformation_baseline", "parallel": "parallel", "seol": "seol"}
-#: the Ribera 2017 variant whose numbers are also reported as ``retarget.ribera.*`` (the issue's keys);
-#: config ``params.retarget.ribera.primary`` chooses another (``ribera`` = the paper as written)
-PRIMARY_RIBERA_METHOD = "ribera_fit"
-RIBERA_VARIANTS = ("ribera", "ribera_activation", "ribera_fit")
+#: A shape is "observable" by a marker set when some marker moves at least this much (mm) at weight 1.
+OBSERVABLE_MM = 1.0
+#: the ground-truth metrics written to the ``retarget`` fragment (``retarget.<prefix>.<character>.<key>``)
+FRAGMENT_KEYS = ("weight_mae", "mean_correlation", "unobservable_mae")
 
 
-def metric_prefixes(method: str, primary: str = PRIMARY_RIBERA_METHOD) -> list[str]:
-    """metrics.json prefixes under which ``method``'s numbers are merged: its own key, plus ``ribera``
-    when it is the primary Ribera variant."""
-    if primary not in RIBERA_VARIANTS:
-        raise InputError(f"params.retarget.ribera.primary '{primary}' is not a Ribera variant", path="config",
-                         fix=f"use one of {list(RIBERA_VARIANTS)}")
-    return [METHOD_KEYS[method]] + (["ribera"] if method == primary else [])
+def observable_shapes(sparse_deltas: np.ndarray, threshold_mm: float = OBSERVABLE_MM) -> np.ndarray:
+    """(K,) bool: shape k moves some marker by at least ``threshold_mm`` at weight 1.
+
+    sparse_deltas : (K, M, 3) in mm (e.g. the actor's ground-truth ``rig.deltas[:, marker_vertices]``).
+    """
+    return np.linalg.norm(sparse_deltas, axis=2).max(1) >= threshold_mm
+
+
+def active_shapes(weights_true: np.ndarray, min_range: float = 0.05) -> np.ndarray:
+    """(K,) bool: ground-truth curve k varies (max - min over frames >= ``min_range``)."""
+    w = np.asarray(weights_true, dtype=np.float64)
+    return (w.max(0) - w.min(0)) >= min_range
+
+
+def weight_mae(weights: np.ndarray, weights_true: np.ndarray, shapes: np.ndarray | None = None) -> float:
+    """Mean absolute error over frames and the selected shapes ((K,) bool or indices; default all)."""
+    e = np.abs(np.asarray(weights, float) - np.asarray(weights_true, float))
+    if shapes is not None:
+        e = e[:, shapes]
+    return float(e.mean()) if e.size else float("nan")
+
+
+def per_shape_correlation(weights: np.ndarray, weights_true: np.ndarray) -> np.ndarray:
+    """(K,) Pearson correlation over frames between estimated and true curves (NaN for a constant curve)."""
+    a = np.asarray(weights, float)
+    b = np.asarray(weights_true, float)
+    a = a - a.mean(0)
+    b = b - b.mean(0)
+    den = np.sqrt((a * a).sum(0) * (b * b).sum(0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = (a * b).sum(0) / den
+    r[den <= 1e-12] = np.nan
+    return r
+
+
+def mean_correlation(weights: np.ndarray, weights_true: np.ndarray, shapes: np.ndarray | None = None) -> float:
+    """Mean per-shape Pearson correlation over the selected shapes (a constant estimate counts as 0)."""
+    r = per_shape_correlation(weights, weights_true)
+    if shapes is not None:
+        r = r[shapes]
+    r = np.where(np.isnan(r), 0.0, r)
+    return float(r.mean()) if r.size else float("nan")
 
 
 def align_to_truth(weights: np.ndarray, names: Sequence[str], true_weights: np.ndarray,
@@ -79,31 +106,31 @@ def retarget_metrics(weights: np.ndarray, names: Sequence[str], true_weights: np
     }
 
 
-def synthetic_retarget_scene(template, seed: int = 0, identity_folder=None, n_rom_sequences: int | None = None,
-                             rom_frames: int = 20, rom_coverage: int = 2, perf_frames: int = 450, fps: float = 30.0,
-                             noise_mm: float = 0.2, gap_fraction: float = 0.01) -> dict:
-    """A ground-truth retargeting scene on ``template`` (a Rig with a marker set, mm).
+def run_eval_retarget(weights_csv: str | os.PathLike, truth_npz: str | os.PathLike, actor_rig: str | os.PathLike,
+                      method: str, character: str, ribera: Mapping[str, Any] | None,
+                      metrics_path: str | os.PathLike, details_path: str | os.PathLike) -> dict:
+    """Rule ``eval_retarget``: one job's weight curves vs ``ground_truth/performances/<perf>.npz`` (weights,
+    shape_names) with the actor's rig (``ground_truth/actor_rig.npz``, its marker map).
 
-    The actor (:func:`rigbuild.synth.actor.make_actor_rig`) performs a range-of-motion training set
-    (``n_rom_sequences`` x ``rom_frames``, default one sequence per shape, each shape peaking in
-    ``rom_coverage`` sequences) and a speech-like performance, both with head motion, marker noise and gaps.
-    Returns a dict: actor, info, training (F, M, 3), segment_starts, rom_weights, neutral (M, 3),
-    performance (F', M, 3), weights (F', K) ground truth, fps.
-    """
-    from rigbuild.synth.actor import make_actor_rig
-    from rigbuild.synth.motion import make_head_motion, make_performance_weights, make_rom_weights, markers_from_rig
+    Writes the fragment ``{"retarget": {<prefix>: {<character>: {weight_mae, mean_correlation,
+    unobservable_mae}}}}`` at ``metrics_path`` (prefixes: :func:`rigbuild.retarget.methods.metric_prefixes`
+    with ``params.retarget.ribera.primary``) and every metric (per-shape correlations, unobservable shapes)
+    at ``details_path``; returns the metrics."""
+    from rigbuild.io.atomic import write_json
+    from rigbuild.io.curves import read_weight_curves_csv
+    from rigbuild.io.metrics import write_metrics_fragment
+    from rigbuild.io.rigs import read_rig_npz
+    from rigbuild.retarget.methods import method_metrics
+    from rigbuild.retarget.params import ribera_from_config
 
-    actor, info = make_actor_rig(template, seed=seed, identity_folder=identity_folder)
-    names = actor.shape_names
-    n_seq = n_rom_sequences or len(names)
-    seqs = make_rom_weights(names, n_seq, rom_frames, seed=seed + 5, coverage=rom_coverage)
-    W = np.concatenate(seqs)
-    starts = np.cumsum([0] + [len(s) for s in seqs[:-1]]).astype(np.int64)
-    R, t = make_head_motion(len(W), seed=seed + 6, max_rotation_deg=2.0, max_translation_mm=3.0)
-    train = markers_from_rig(actor, W, R, t, noise_mm=noise_mm, gap_fraction=gap_fraction, seed=seed + 7)
-    train[0] = markers_from_rig(actor, W[:1], noise_mm=noise_mm, seed=seed + 8)[0]  # a clean neutral frame 0
-    Wp = make_performance_weights(names, perf_frames, fps, seed=seed + 9)
-    R2, t2 = make_head_motion(perf_frames, seed=seed + 10)
-    perf = markers_from_rig(actor, Wp, R2, t2, noise_mm=noise_mm, gap_fraction=gap_fraction, seed=seed + 11)
-    return {"actor": actor, "info": info, "training": train, "segment_starts": starts, "rom_weights": W,
-            "neutral": train[0].copy(), "performance": perf, "weights": Wp, "fps": fps}
+    primary = ribera_from_config(ribera).primary
+    w, names, _ = read_weight_curves_csv(weights_csv)
+    with np.load(truth_npz, allow_pickle=False) as z:
+        tw = z["weights"].astype(np.float64)
+        tn = [str(s) for s in z["shape_names"]]
+    actor = read_rig_npz(actor_rig).subset(tn)
+    m = retarget_metrics(w, names, tw, tn, actor.deltas[:, actor.marker_vertices])
+    write_json(details_path, {"method": method, "character": character, **m})
+    write_metrics_fragment(metrics_path, "retarget",
+                           method_metrics(method, character, {k: m[k] for k in FRAGMENT_KEYS}, primary))
+    return m

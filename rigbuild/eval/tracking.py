@@ -3,8 +3,8 @@
 The evaluated region is the template's face region **as the capture sees it**: face-region vertices that at
 least two cameras see on the ground-truth neutral (in the image, facing the camera, not occluded:
 :func:`rigbuild.eval.reconstruction.visible_counts`, the same rule the reconstruction metrics use). The rest
-of the face mask (ICT: 19 % of it - the lip linings inside the closed mouth, the eyelid linings, the nostrils,
-under the chin and behind the jaw) is never in a camera's view at the neutral, so no tracker measures it;
+of the face mask (the lip linings inside the closed mouth, the eyelid linings, the nostrils, under the chin
+and behind the jaw) is never in a camera's view at the neutral, so no tracker measures it;
 its vertices follow the Laplacian prior. The whole mask is reported too (``mask_*``).
 
 Two error kinds over those vertices:
@@ -161,3 +161,50 @@ def ground_truth_tracking_metrics(gt_dir, cameras, faces: np.ndarray, face_verti
     for n, s in mask_summaries.items():
         per[n].update({f"mask_{k}": s[k] for k in ("mean_error_mm", "p95_error_mm", "end_error_mm")})
     return values, per
+
+
+def run_eval_tracking(session_dir, gt_cameras, gt_sequences, cameras, neutral, vertices,
+                      track_params=None, metrics_path=None, min_cameras: int = 2, detail_path=None) -> dict:
+    """Rule eval_track: a synthetic session's tracking accuracy -> the ``tracking`` fragment.
+
+    session_dir : the session folder (session.yaml: the template rig); gt_cameras : its
+    ``ground_truth/cameras.json``; gt_sequences : the ``ground_truth/rom/<seq>.npz`` files (every ROM
+    sequence: the evaluation reads them and nothing else of ground_truth/); cameras : the calibrated
+    cameras.json; neutral : the tracked ``neutral.npz``; vertices : each sequence's tracked
+    ``vertices.npz`` (``track/<seq>/vertices.npz``); track_params : ``config["params"]["track"]`` (its
+    ``template_rig``). The fragment holds :func:`ground_truth_tracking_metrics`' session values and, under
+    ``sequences.<seq>``, its per-sequence scalars; ``detail_path`` (JSON) gets the per-frame curves
+    (``per_frame_mean_mm``, ``corr_per_frame_mean_mm`` per sequence).
+    """
+    from pathlib import Path
+
+    from rigbuild.io.metrics import write_metrics_fragment
+    from rigbuild.io.rigs import load_rig
+    from rigbuild.session import read_session
+    from rigbuild.track.params import from_config
+
+    gt_dir = Path(gt_cameras).parent
+    declared = {Path(p).resolve() for p in gt_sequences}
+    spec = read_session(Path(session_dir))
+    template = load_rig(from_config(track_params).template_for(spec))
+    with np.load(neutral) as z:
+        neutral_v = z["vertices"].astype(np.float64)
+        neutral_at = (str(z["sequence"]), int(z["frame"]))
+    tracked = {}
+    for p in vertices:
+        with np.load(p) as z:
+            tracked[Path(p).parent.name] = (z["vertices"].astype(np.float64), z["frames"].astype(np.int64))
+    needed = {(gt_dir / "rom" / f"{name}.npz").resolve() for name in [neutral_at[0], *tracked]}
+    if not needed <= declared:
+        raise ValueError(f"ground-truth files read but not declared: {sorted(map(str, needed - declared))}")
+    values, per = ground_truth_tracking_metrics(gt_dir, cameras, template.faces, template.face_vertices,
+                                                neutral_v, neutral_at, tracked, min_cameras)
+    curves = {name: {k: d.pop(k) for k in list(d) if isinstance(d[k], list)} for name, d in per.items()}
+    values["sequences"] = per
+    if detail_path is not None:
+        from rigbuild.io.atomic import write_json
+
+        write_json(detail_path, {"sequences": curves})
+    if metrics_path is not None:
+        return write_metrics_fragment(metrics_path, "tracking", values)
+    return {"tracking": values}

@@ -145,3 +145,18 @@ def read_depth_frame(path: str | os.PathLike) -> DepthFrame:
     cams = [Camera(cid, W, H, d["K"][i], np.zeros(5), d["R"][i], d["t"][i]) for i, cid in enumerate(d["camera_ids"])]
     return DepthFrame(d["camera_ids"], d["depth"], d["confidence"], d["n_views"], cams, d["frame"],
                       d["skipped"], d["reason"])
+
+
+def camera_depth_maps(path: str | os.PathLike, camera_ids: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per camera of ``camera_ids`` (in that order): its depth map (H, W) float32 camera z mm on the file's
+    undistorted pinhole grid (0 = none) and that grid's K (3, 3). A camera is found by its id in the file,
+    else by its position in ``camera_ids``; InputError when the file has no map for it."""
+    d = read_depth(path)
+    ids, depth, K = d["camera_ids"], d["depth"], np.asarray(d["K"])
+    out = []
+    for i, cid in enumerate(camera_ids):
+        j = ids.index(cid) if cid in ids else i
+        if j >= depth.shape[0]:
+            raise InputError(f"no depth map for camera {cid}", path=path, fix="re-run reconstruct")
+        out.append((depth[j], K[j]))
+    return out

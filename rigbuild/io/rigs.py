@@ -7,7 +7,7 @@ Formats:
   ``rig.json`` with units / markers / face region: :func:`read_obj_folder_rig`, :func:`write_obj_folder_rig`.
 - npz with the keys of ``ground_truth/actor_rig.npz`` (``neutral``, ``deltas``, ``shape_names``, ``faces``)
   plus optional extras: :func:`read_rig_npz`, :func:`write_rig_npz`.
-- ``"procedural"``: the built-in procedural head (:mod:`rigbuild.synth.head`).
+- ``"procedural"``: the built-in procedural head (:mod:`rigbuild.assets.head`).
 
 :func:`load_rig` picks the reader from a spec string. Every reader returns a :class:`Rig` in mm.
 """
@@ -99,7 +99,7 @@ def read_ict_rig(
         face_region=np.arange(*ICT_FACE_VERTICES),
         landmarks=landmarks if landmarks.size == 68 else None,
     )
-    from rigbuild.synth.markers import load_marker_set, marker_set_path
+    from rigbuild.assets.markers import load_marker_set, marker_set_path
 
     if marker_set_path("ict").exists():  # the ICT marker set is data shipped with rigbuild
         names, vids = load_marker_set("ict")
@@ -237,7 +237,7 @@ def load_rig(spec: str | os.PathLike, units: str = "mm", **kwargs) -> Rig:
                              fix="set RIGBUILD_DATA to the folder holding ict-facekit/")
         return read_ict_rig(folder, units=units, **kwargs)
     if s == "procedural":
-        from rigbuild.synth.head import procedural_head_rig
+        from rigbuild.assets.head import procedural_head_rig
 
         return procedural_head_rig(**kwargs).to_units(units)
     p = Path(s)

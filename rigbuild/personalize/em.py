@@ -22,97 +22,18 @@ from __future__ import annotations
 import logging
 import time
 import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 
 from rigbuild.errors import InputError, RigbuildError
+from rigbuild.personalize.params import PersonalizeParams
 from rigbuild.personalize.rigid import fit_frame_rigid, to_rig_frame
 from rigbuild.personalize.shapes import ShapeUpdate
 from rigbuild.personalize.weights import solve_box_qp, weight_qp
 from rigbuild.progress import progress
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class PersonalizeParams:
-    """Parameters (Ma et al. 2016 values where the paper gives them).
-
-    lambda_s : squared-L1 sparsity weight (paper: 0.1).
-    lambda_t : temporal smoothness weight between contiguous frames (the paper gives no value; 0.01 in
-        centimetres is 1 mm^2 per unit weight^2).
-    lambda_r : deformation-gradient regularization (paper: 0.1).
-    lambda_d : displacement regularization towards D* (paper: 0.05).
-    lambda_unit_mm : the length unit, in mm, the lambdas are stated in (default 10: centimetres). The
-        paper gives its values without a unit; E_g and E_d are squared lengths while E_s, E_t and E_r are
-        unitless, so lambda_s, lambda_t and lambda_r weigh differently in mm than in cm (by 100x). Face rigs
-        are built in centimetres (the ICT model; Maya's default unit), and read so the paper's values fit
-        better on both ground-truth and tracked ICT sessions: weight MAE 0.020 -> 0.007 (ground truth),
-        0.024 -> 0.012 (tracked), min shape cosine 0.90 -> 0.97 (tracked). The solver works in mm with
-        lambda_s, lambda_t, lambda_r times ``lambda_unit_mm ** 2`` (:meth:`in_mm`); 1 states them in mm.
-    update_neutral : solve the neutral update column (paper: yes).
-    max_iterations : EM iterations at most; tolerance : stop when J drops by less than this (relative).
-    inner_iterations, weight_tol : joint Gauss-Newton steps per frame in each weights step (then one
-        exact rigid and one exact weights step): at most this many, until weights and rotation entries
-        move less than ``weight_tol``.
-    confidence_threshold : a vertex counts as confident above this; min_confident_vertices : frames
-        with fewer are skipped with a warning.
-    support_tol_mm : a shape may change only at vertices where its ``D*`` moves more than this (mm);
-        elsewhere it keeps ``D*`` exactly (exact zeros stay zero: the paper's local support).
-    ring : rings of unconfident vertices around the confident ones that are also solved for.
-    qp_method : ``"active_set"`` or ``"cvxopt"``.
-    gauge : ``"none"`` (the paper: each shape keeps the amplitude the regularizers pull it to, i.e.
-        D*'s) or ``"rom_peak"``: the ROM is performed at full intensity, so each shape's largest
-        weight over the fitting frames is 1. Shape amplitude and weight share a scale no frame
-        determines (``(a D_k, w_k / a)`` fit identically); with ``"rom_peak"`` the weights are first fitted
-        to the D* rig with the box relaxed to ``[0, gauge_max_weight]``, each ``D*_k`` (the prior of
-        E_r and E_d) is scaled by its peak weight, the paper's EM runs on that rig, and at the end each
-        shape is scaled by its peak weight once more (weights divided by it: the fit is unchanged).
-    gauge_max_weight : the relaxed upper bound of the gauge fit (largest amplitude ratio actor / D*
-        that can be measured).
-    pin_neutral_frames : frames the session names as the actor's neutral (each ROM sequence's
-        ``neutral_frame``, passed as ``neutral_mask``) keep all weights at 0 and fit the rigid motion only
-        (not in the paper, whose EM leaves them free). The neutral update and "always on" weights are
-        otherwise interchangeable: ``d_0`` plus a constant weight on a shape fits every frame as well as
-        ``d_0`` alone, and on tracked frames the EM drifted into that (ICT tier: the personalized rig fitted
-        the sequences' own neutral frames with eyeLookOut_R at 0.42, eyeLookUp_L 0.36; 0.34 mm RMS where
-        the D* rig fits them to 0.06 mm). Pinning the frames that are known to be neutral anchors ``d_0``.
-    """
-
-    lambda_s: float = 0.1
-    lambda_t: float = 0.01
-    lambda_r: float = 0.1
-    lambda_d: float = 0.05
-    lambda_unit_mm: float = 10.0
-    update_neutral: bool = True
-    max_iterations: int = 10
-    tolerance: float = 1e-3
-    inner_iterations: int = 10
-    weight_tol: float = 1e-5
-    confidence_threshold: float = 0.0
-    min_confident_vertices: int = 100
-    support_tol_mm: float = 1.0
-    ring: int = 2
-    qp_method: str = "active_set"
-    gauge: str = "none"
-    gauge_max_weight: float = 3.0
-    pin_neutral_frames: bool = True
-
-    def in_mm(self) -> "PersonalizeParams":
-        """These parameters with the lambdas for mm data (``lambda_unit_mm`` = 1): lambda_s, lambda_t and
-        lambda_r (weights of unitless terms against squared lengths) scaled by ``lambda_unit_mm ** 2``;
-        lambda_d (a squared length, like the data term) unchanged."""
-        if not (np.isfinite(self.lambda_unit_mm) and self.lambda_unit_mm > 0):
-            raise InputError(f"lambda_unit_mm must be a positive length in mm, got {self.lambda_unit_mm}",
-                             path="config", fix="params.personalize.lambda_unit_mm: 10 (cm) or 1 (mm)")
-        u2 = float(self.lambda_unit_mm) ** 2
-        return replace(self, lambda_s=self.lambda_s * u2, lambda_t=self.lambda_t * u2, lambda_r=self.lambda_r * u2,
-                       lambda_unit_mm=1.0)
-
-
-GAUGES = ("none", "rom_peak")
 
 
 @dataclass
@@ -421,6 +342,202 @@ def rom_peak_scales(weights: np.ndarray, observable: np.ndarray | None = None) -
     return np.where(ok, peak, 1.0)
 
 
+def usable_frames(neutral: np.ndarray, initial_deltas: np.ndarray, frames: np.ndarray, confidence: np.ndarray | None,
+                  shape_names: list[str] | None, fit_vertices: np.ndarray | None, p: PersonalizeParams
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """Checked inputs and the frames the EM fits.
+
+    Returns frames (N, V, 3) mm with non-finite entries set to 0; conf (N, V), zero outside ``fit_vertices``,
+    at non-finite positions and on skipped frames; confident (N, V) bool (``conf > confidence_threshold``
+    before skipped frames are zeroed); kept (N,) bool (frames with at least ``min_confident_vertices``
+    confident vertices); the warnings issued for skipped frames."""
+    conf = check_inputs(neutral, initial_deltas, frames, confidence, shape_names).copy()
+    V = neutral.shape[0]
+    if fit_vertices is not None:
+        keep_v = np.zeros(V, dtype=bool)
+        keep_v[np.asarray(fit_vertices, dtype=np.int64)] = True
+        conf[:, ~keep_v] = 0.0
+    conf[~np.isfinite(frames).all(2)] = 0.0
+    frames = np.where(np.isfinite(frames), frames, 0.0)
+    msgs: list[str] = []
+
+    confident = conf > p.confidence_threshold
+    n_conf = confident.sum(1)
+    kept = n_conf >= p.min_confident_vertices
+    for i in np.flatnonzero(~kept):
+        m = (f"frame {i}: only {int(n_conf[i])} confident vertices (< min_confident_vertices = "
+             f"{p.min_confident_vertices}); skipped")
+        warnings.warn(m, stacklevel=3)
+        msgs.append(m)
+    if kept.sum() == 0:
+        raise InputError(
+            f"no frame has at least {p.min_confident_vertices} confident vertices",
+            fix="check the tracking confidences or lower params.personalize.min_confident_vertices",
+        )
+    conf[~kept] = 0.0
+    return frames, conf, confident, kept, msgs
+
+
+def local_support(initial_deltas: np.ndarray, names: list[str], support_tol_mm: float) -> np.ndarray:
+    """(K, V) bool: where shape k may change. Shape k may change at vertex v only where
+    ``|D*_kv| > support_tol_mm``; elsewhere it keeps D* (so D_kv = 0 wherever D*_kv = 0, and sub-threshold
+    tails stay as transferred). A shape that moves less than support_tol_mm everywhere uses a quarter of
+    its own peak instead (with a warning)."""
+    mag = np.linalg.norm(initial_deltas, axis=2)
+    peak = mag.max(axis=1)
+    small = [names[k] for k in range(initial_deltas.shape[0]) if peak[k] <= support_tol_mm]
+    if small:
+        warnings.warn(f"shape(s) {', '.join(small)} move at most support_tol_mm = {support_tol_mm} mm; "
+                      "their support is a quarter of their own peak", stacklevel=3)
+    return mag > np.minimum(support_tol_mm, 0.25 * peak)[:, None]
+
+
+class EMRun:
+    """The state of one EM run on the active vertices: the rig change ``X`` (K+1, A, 3) from [0, D*], the
+    per-frame weights ``W`` (N, K), rotations ``R`` (N, 3, 3) and translations ``t`` (N, 3), the objective
+    record, and the time spent in the weights and shapes steps (s)."""
+
+    def __init__(self, p: PersonalizeParams, neutral: np.ndarray, initial_deltas: np.ndarray, frames: np.ndarray,
+                 conf: np.ndarray, kept: np.ndarray, active: np.ndarray, sequence_ids: np.ndarray | None,
+                 neutral_mask: np.ndarray | None, initial_weights: np.ndarray | None,
+                 initial_rigid: tuple[np.ndarray, np.ndarray] | None):
+        self.p = p
+        self.neutral = neutral
+        self.Dstar = initial_deltas
+        self.kept = kept
+        self.kept_idx = np.flatnonzero(kept)
+        self.active = active
+        self.conf2 = conf[:, active] ** 2
+        self.frames_a = frames[:, active]
+        self.b0_a = neutral[active]
+        self.Ds_a = initial_deltas[:, active]
+        self.fit = FrameFitter(p, self.frames_a, self.conf2, contiguity(sequence_ids, kept), kept)
+        self.fit.pinned = pinned_frames(neutral_mask, frames.shape[0], p)
+        Nf, K = frames.shape[0], initial_deltas.shape[0]
+        self.Nf = Nf
+        self.W = np.zeros((Nf, K)) if initial_weights is None else np.clip(np.nan_to_num(initial_weights), 0, 1).copy()
+        self.R = np.repeat(np.eye(3)[None], Nf, 0) if initial_rigid is None else np.array(initial_rigid[0], float)
+        self.t = np.zeros((Nf, 3)) if initial_rigid is None else np.array(initial_rigid[1], float)
+        self.X = np.zeros((K + 1, active.size, 3))
+        self.objective: list[dict] = []
+        self.shapes: ShapeUpdate | None = None
+        self.scales = np.ones(K)
+        self.t_w = self.t_s = self.t_setup = 0.0
+
+    def set_rig(self) -> None:
+        self.fit.set_rig(self.b0_a + self.X[0], self.Ds_a + self.X[1:])
+
+    def record(self, it: int, step: str) -> float:
+        """Append the objective's row for EM step ``step`` of iteration ``it``; returns J."""
+        p = self.p
+        e = self.fit.terms(self.W, self.R, self.t)
+        Er, Ed = self.shapes.regularizers(self.X) if self.shapes is not None else (0.0, 0.0)
+        J = e["E_g"] + p.lambda_s * e["E_s"] + p.lambda_t * e["E_t"] + p.lambda_r * Er + p.lambda_d * Ed
+        row = {"iteration": it, "step": step, "total": J, **e, "E_r": Er, "E_d": Ed, "lambda_s": p.lambda_s,
+               "lambda_t": p.lambda_t, "lambda_r": p.lambda_r, "lambda_d": p.lambda_d}
+        self.objective.append(row)
+        log.info("EM %d %-7s J=%.6g E_g=%.6g rms=%.4f mm", it, step, J, e["E_g"], e["rms_mm"])
+        return J
+
+    def sweep(self, **kw) -> None:
+        """One weights step over the kept frames (timed)."""
+        t0 = time.perf_counter()
+        self.fit.sweep(self.W, self.R, self.t, **kw)
+        self.t_w += time.perf_counter() - t0
+
+    def rom_peak_gauge(self) -> float:
+        """The ROM reaches every shape at full intensity: measure each shape's peak weight with the box
+        relaxed, scale D* (the prior of E_r / E_d) by it; the weights scale inversely (same fit). Returns J
+        of the re-based objective."""
+        self.fit.hi = self.p.gauge_max_weight
+        self.sweep()
+        self.fit.hi = 1.0
+        self.scales = rom_peak_scales(self.W[self.kept_idx], self.fit.observable)
+        self.Dstar = self.Dstar * self.scales[:, None, None]
+        self.Ds_a = self.Dstar[:, self.active]
+        self.W = np.minimum(self.W / self.scales[None, :], 1.0)
+        self.set_rig()
+        self.objective.clear()  # the objective is re-based: its E_r / E_d refer to the scaled D*
+        return self.record(0, "gauge")
+
+    def shapes_step(self) -> None:
+        """The shape update (eq. 5-7) for the current weights and rigid motions."""
+        kept_idx = self.kept_idx
+        t0 = time.perf_counter()
+        W_hat = np.concatenate([np.ones((self.Nf, 1)), self.W], axis=1)[kept_idx]
+        rig_frame = np.stack([to_rig_frame(self.frames_a[i], self.R[i], self.t[i]) for i in kept_idx])
+        residual = rig_frame - self.b0_a - np.einsum("fk,kac->fac", self.W[kept_idx], self.Ds_a, optimize=True)
+        self.X = self.shapes.solve(W_hat, self.conf2[kept_idx], residual)
+        if not self.p.update_neutral:
+            self.X[0] = 0.0
+        self.t_s += time.perf_counter() - t0
+
+    def iterate(self, J: float, faces: np.ndarray, support: np.ndarray) -> None:
+        """EM iterations (shapes step, then weights step) until J drops by less than ``tolerance``
+        (relative) or ``max_iterations``; RigbuildError if J increases."""
+        p = self.p
+        t0 = time.perf_counter()
+        self.shapes = ShapeUpdate(self.neutral, self.Dstar, faces, self.active, p.lambda_r, p.lambda_d,
+                                  p.update_neutral, support)
+        self.t_setup = time.perf_counter() - t0
+        for it in progress(range(1, p.max_iterations + 1), "EM iterations", unit="iteration"):
+            J_prev = J
+            self.shapes_step()
+            self.set_rig()
+            J_shape = self.record(it, "shapes")
+            self.sweep()
+            J = self.record(it, "weights")
+            if J_shape > J_prev * (1 + 1e-9) or J > J_shape * (1 + 1e-9):
+                raise RigbuildError(f"EM objective increased at iteration {it}: {J_prev:.9g} -> {J_shape:.9g} -> {J:.9g}")
+            if J_prev - J <= p.tolerance * abs(J_prev):
+                break
+
+    def result(self, residual_initial: float, residual_initial_unweighted: float, t_start: float,
+               msgs: list[str]) -> PersonalizationResult:
+        """The personalized rig on all vertices (the ``rom_peak`` gauge applied once more) and the fit."""
+        kept = self.kept
+        neutral_out = self.neutral.copy()
+        neutral_out[self.active] += self.X[0]
+        deltas_out = self.Dstar.copy()
+        deltas_out[:, self.active] += self.X[1:]
+        W = self.W
+        scales = self.scales
+        if self.p.gauge == "rom_peak":  # the personalized shapes, too, reach full intensity at their ROM peak
+            final = rom_peak_scales(W[self.kept_idx], self.fit.observable)
+            deltas_out *= final[:, None, None]
+            W = W / final[None, :]
+            scales = scales * final
+        W_out = W.copy()
+        W_out[~kept] = np.nan
+        R_out = self.R.copy()
+        t_out = self.t.copy()
+        R_out[~kept] = np.nan
+        t_out[~kept] = np.nan
+        qp = np.asarray(self.fit.qp_times)
+        objective = self.objective
+        return PersonalizationResult(
+            neutral=neutral_out,
+            deltas=deltas_out,
+            weights=W_out,
+            rotations=R_out,
+            translations=t_out,
+            kept=kept,
+            objective=objective,
+            residual_initial_mm=residual_initial,
+            residual_final_mm=objective[-1]["rms_mm"],
+            residual_initial_unweighted_mm=residual_initial_unweighted,
+            residual_final_unweighted_mm=objective[-1]["rms_unweighted_mm"],
+            n_free_variables=self.shapes.n_vars,
+            active_vertices=self.active,
+            timings={"setup_s": self.t_setup, "weights_s": self.t_w, "shapes_s": self.t_s,
+                     "total_s": time.perf_counter() - t_start,
+                     "qp_median_ms": float(np.median(qp) * 1e3) if qp.size else float("nan"),
+                     "system_nnz": self.shapes.nnz},
+            warnings=msgs,
+            shape_scales=scales,
+        )
+
+
 def personalize(
     neutral: np.ndarray,
     initial_deltas: np.ndarray,
@@ -459,180 +576,39 @@ def personalize(
 
     Returns
     -------
-    :class:`PersonalizationResult`. Raises InputError for mismatched topology or all-zero shapes;
-    frames with fewer than ``min_confident_vertices`` confident vertices are skipped with a warning.
+    :class:`PersonalizationResult`. Raises InputError for mismatched topology, all-zero shapes or a bad
+    parameter value; frames with fewer than ``min_confident_vertices`` confident vertices are skipped with a
+    warning.
     """
-    p = (params or PersonalizeParams()).in_mm()
-    if p.gauge not in GAUGES:
-        raise InputError(f"unknown gauge '{p.gauge}' in params.personalize", path="config",
-                         fix=f"use one of: {', '.join(GAUGES)}")
-    if not p.gauge_max_weight >= 1.0:
-        raise InputError(f"gauge_max_weight must be >= 1, got {p.gauge_max_weight}", path="config")
+    params = params or PersonalizeParams()
+    params.check()
+    p = params.in_mm()
     t_start = time.perf_counter()
     neutral = np.asarray(neutral, dtype=np.float64)
     Dstar = np.asarray(initial_deltas, dtype=np.float64)
     frames = np.asarray(frames, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
-    conf = check_inputs(neutral, Dstar, frames, confidence, shape_names).copy()
-    V = neutral.shape[0]
-    K = Dstar.shape[0]
-    names = shape_names or [f"shape{k}" for k in range(K)]
-    if fit_vertices is not None:
-        keep_v = np.zeros(V, dtype=bool)
-        keep_v[np.asarray(fit_vertices, dtype=np.int64)] = True
-        conf[:, ~keep_v] = 0.0
-    conf[~np.isfinite(frames).all(2)] = 0.0
-    frames = np.where(np.isfinite(frames), frames, 0.0)
-    msgs: list[str] = []
+    frames, conf, confident, kept, msgs = usable_frames(neutral, Dstar, frames, confidence, shape_names,
+                                                        fit_vertices, p)
+    names = shape_names or [f"shape{k}" for k in range(Dstar.shape[0])]
+    support = local_support(Dstar, names, p.support_tol_mm)
+    active = grow_ring(np.flatnonzero(confident[kept].any(0)), faces, neutral.shape[0], p.ring)
 
-    confident = conf > p.confidence_threshold
-    n_conf = confident.sum(1)
-    kept = n_conf >= p.min_confident_vertices
-    for i in np.flatnonzero(~kept):
-        m = (f"frame {i}: only {int(n_conf[i])} confident vertices (< min_confident_vertices = "
-             f"{p.min_confident_vertices}); skipped")
-        warnings.warn(m, stacklevel=2)
-        msgs.append(m)
-    if kept.sum() == 0:
-        raise InputError(
-            f"no frame has at least {p.min_confident_vertices} confident vertices",
-            fix="check the tracking confidences or lower params.personalize.min_confident_vertices",
-        )
-    conf[~kept] = 0.0
-
-    # local support: shape k may change at vertex v only where |D*_kv| > support_tol_mm; elsewhere it
-    # keeps D* (so D_kv = 0 wherever D*_kv = 0, and sub-threshold tails stay as transferred)
-    # keeps D* (so D_kv = 0 wherever D*_kv = 0, and sub-threshold tails stay as transferred). A shape
-    # that moves less than support_tol_mm everywhere uses a quarter of its own peak instead.
-    mag = np.linalg.norm(Dstar, axis=2)
-    peak = mag.max(axis=1)
-    small = [names[k] for k in range(K) if peak[k] <= p.support_tol_mm]
-    if small:
-        warnings.warn(f"shape(s) {', '.join(small)} move at most support_tol_mm = {p.support_tol_mm} mm; "
-                      "their support is a quarter of their own peak", stacklevel=2)
-    support = mag > np.minimum(p.support_tol_mm, 0.25 * peak)[:, None]
-
-    data_v = np.flatnonzero(confident[kept].any(0))
-    active = grow_ring(data_v, faces, V, p.ring)
-    conf_a = conf[:, active]
-    conf2 = conf_a**2
-    frames_a = frames[:, active]
-    b0_a = neutral[active]
-    Ds_a = Dstar[:, active]
-
-    fit = FrameFitter(p, frames_a, conf2, contiguity(sequence_ids, kept), kept)
-    fit.pinned = pinned_frames(neutral_mask, frames.shape[0], p)
-    unobs = None
-    Nf = frames.shape[0]
-    W = np.zeros((Nf, K)) if initial_weights is None else np.clip(np.nan_to_num(initial_weights), 0, 1).copy()
-    R = np.repeat(np.eye(3)[None], Nf, 0) if initial_rigid is None else np.array(initial_rigid[0], float)
-    t = np.zeros((Nf, 3)) if initial_rigid is None else np.array(initial_rigid[1], float)
-    X = np.zeros((K + 1, active.size, 3))
-    objective: list[dict] = []
-    shapes = None
-
-    def record(it: int, step: str) -> float:
-        e = fit.terms(W, R, t)
-        Er, Ed = shapes.regularizers(X) if shapes is not None else (0.0, 0.0)
-        J = e["E_g"] + p.lambda_s * e["E_s"] + p.lambda_t * e["E_t"] + p.lambda_r * Er + p.lambda_d * Ed
-        row = {"iteration": it, "step": step, "total": J, **e, "E_r": Er, "E_d": Ed, "lambda_s": p.lambda_s,
-               "lambda_t": p.lambda_t, "lambda_r": p.lambda_r, "lambda_d": p.lambda_d}
-        objective.append(row)
-        log.info("EM %d %-7s J=%.6g E_g=%.6g rms=%.4f mm", it, step, J, e["E_g"], e["rms_mm"])
-        return J
-
-    def set_rig() -> None:
-        fit.set_rig(b0_a + X[0], Ds_a + X[1:])
-
-    set_rig()
-    unobs = [names[k] for k in np.flatnonzero(~fit.observable)]
+    em = EMRun(p, neutral, Dstar, frames, conf, kept, active, sequence_ids, neutral_mask, initial_weights,
+               initial_rigid)
+    em.set_rig()
+    unobs = [names[k] for k in np.flatnonzero(~em.fit.observable)]
     if unobs:
         m = (f"shape(s) {', '.join(unobs)} do not move any confident vertex: their weights stay 0 and "
              "their shapes stay as transferred")
         warnings.warn(m, stacklevel=2)
         msgs.append(m)
-    t_w = t_s = 0.0
-    t0 = time.perf_counter()
     if initial_weights is None or initial_rigid is None:
-        fit.sweep(W, R, t, warm_start=initial_weights is None)
-    t_w += time.perf_counter() - t0
-    J = record(0, "weights")
-    residual_initial = objective[-1]["rms_mm"]
-    residual_initial_unweighted = objective[-1]["rms_unweighted_mm"]
-    kept_idx = np.flatnonzero(kept)
-    scales = np.ones(K)
+        em.sweep(warm_start=initial_weights is None)
+    J = em.record(0, "weights")
+    residual_initial = em.objective[-1]["rms_mm"]
+    residual_initial_unweighted = em.objective[-1]["rms_unweighted_mm"]
     if p.gauge == "rom_peak":
-        # the ROM reaches every shape at full intensity: measure each shape's peak weight with the box
-        # relaxed, scale D* (the prior of E_r / E_d) by it; the weights scale inversely (same fit)
-        t0 = time.perf_counter()
-        fit.hi = p.gauge_max_weight
-        fit.sweep(W, R, t)
-        fit.hi = 1.0
-        t_w += time.perf_counter() - t0
-        scales = rom_peak_scales(W[kept_idx], fit.observable)
-        Dstar = Dstar * scales[:, None, None]
-        Ds_a = Dstar[:, active]
-        W = np.minimum(W / scales[None, :], 1.0)
-        set_rig()
-        objective.clear()  # the objective is re-based: its E_r / E_d refer to the scaled D*
-        J = record(0, "gauge")
-    t0 = time.perf_counter()
-    shapes = ShapeUpdate(neutral, Dstar, faces, active, p.lambda_r, p.lambda_d, p.update_neutral, support)
-    t_setup = time.perf_counter() - t0
-    for it in progress(range(1, p.max_iterations + 1), "EM iterations", unit="iteration"):
-        J_prev = J
-        t0 = time.perf_counter()
-        W_hat = np.concatenate([np.ones((Nf, 1)), W], axis=1)[kept_idx]
-        rig_frame = np.stack([to_rig_frame(frames_a[i], R[i], t[i]) for i in kept_idx])
-        residual = rig_frame - b0_a - np.einsum("fk,kac->fac", W[kept_idx], Ds_a, optimize=True)
-        X = shapes.solve(W_hat, conf2[kept_idx], residual)
-        if not p.update_neutral:
-            X[0] = 0.0
-        t_s += time.perf_counter() - t0
-        set_rig()
-        J_shape = record(it, "shapes")
-        t0 = time.perf_counter()
-        fit.sweep(W, R, t)
-        t_w += time.perf_counter() - t0
-        J = record(it, "weights")
-        if J_shape > J_prev * (1 + 1e-9) or J > J_shape * (1 + 1e-9):
-            raise RigbuildError(f"EM objective increased at iteration {it}: {J_prev:.9g} -> {J_shape:.9g} -> {J:.9g}")
-        if J_prev - J <= p.tolerance * abs(J_prev):
-            break
-
-    neutral_out = neutral.copy()
-    neutral_out[active] += X[0]
-    deltas_out = Dstar.copy()
-    deltas_out[:, active] += X[1:]
-    if p.gauge == "rom_peak":  # the personalized shapes, too, reach full intensity at their ROM peak
-        final = rom_peak_scales(W[kept_idx], fit.observable)
-        deltas_out *= final[:, None, None]
-        W = W / final[None, :]
-        scales = scales * final
-    W_out = W.copy()
-    W_out[~kept] = np.nan
-    R_out = R.copy()
-    t_out = t.copy()
-    R_out[~kept] = np.nan
-    t_out[~kept] = np.nan
-    qp = np.asarray(fit.qp_times)
-    return PersonalizationResult(
-        neutral=neutral_out,
-        deltas=deltas_out,
-        weights=W_out,
-        rotations=R_out,
-        translations=t_out,
-        kept=kept,
-        objective=objective,
-        residual_initial_mm=residual_initial,
-        residual_final_mm=objective[-1]["rms_mm"],
-        residual_initial_unweighted_mm=residual_initial_unweighted,
-        residual_final_unweighted_mm=objective[-1]["rms_unweighted_mm"],
-        n_free_variables=shapes.n_vars,
-        active_vertices=active,
-        timings={"setup_s": t_setup, "weights_s": t_w, "shapes_s": t_s, "total_s": time.perf_counter() - t_start,
-                 "qp_median_ms": float(np.median(qp) * 1e3) if qp.size else float("nan"),
-                 "system_nnz": shapes.nnz},
-        warnings=msgs,
-        shape_scales=scales,
-    )
+        J = em.rom_peak_gauge()
+    em.iterate(J, faces, support)
+    return em.result(residual_initial, residual_initial_unweighted, t_start, msgs)

@@ -1,7 +1,12 @@
 """The personalization stage: tracked ROM sequences + template rig -> personalized rig and reports.
 
-Called by ``scripts/personalize.py`` (rule ``personalize``); usable without Snakemake (tests).
-Reads ``ground_truth/`` only through :mod:`rigbuild.eval.personalization`, and only when present.
+Called by ``scripts/personalize.py`` (rule ``personalize``, :func:`run_personalize`); usable without Snakemake
+(tests, :func:`run_personalization`). Ground-truth evaluation of its outputs is a separate rule
+(``eval_personalize``); this stage never reads the session's ground truth.
+
+Files written under ``results/{session}/personalize/``: ``rig.npz``, ``initial_rig.npz`` (D* on the tracked
+neutral), ``rig_obj/``, ``rig.gltf``, ``weights.npz``, ``fit.npz``, ``objective.json``, ``convergence.png``,
+``heatmaps/`` and the metrics fragment ``personalize_metrics.json`` (``{"personalization": {...}}``).
 """
 
 from __future__ import annotations
@@ -10,7 +15,7 @@ import dataclasses
 import logging
 import os
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Mapping
 
 import numpy as np
 
@@ -18,29 +23,18 @@ from rigbuild.errors import InputError
 from rigbuild.geometry.deformation_transfer import deformation_transfer_aligned
 from rigbuild.io.atomic import save_npz, write_json
 from rigbuild.io.gltf import write_gltf_rig
-from rigbuild.io.metrics import merge_metrics
+from rigbuild.io.metrics import write_metrics_fragment
 from rigbuild.io.rigs import write_obj_folder_rig, write_rig_npz
-from rigbuild.personalize.em import PersonalizeParams, fit_weights_and_rigid, personalize
+from rigbuild.personalize.em import PersonalizationResult, fit_weights_and_rigid, personalize
+from rigbuild.personalize.params import PersonalizeConfig, from_config
 from rigbuild.personalize.plots import plot_convergence, render_change_heatmap, render_change_overview
 from rigbuild.rig import Rig
 
 log = logging.getLogger(__name__)
 
-#: stage options besides the PersonalizeParams fields
-STAGE_KEYS = {"held_out_sequences", "neutral_sequence", "neutral_frame", "fit_region", "template_rig",
-              "heatmaps"}
-
-
-def split_params(cfg: Mapping | None) -> tuple[PersonalizeParams, dict]:
-    """``config["params"]["personalize"]`` -> (PersonalizeParams, stage options). Unknown keys are an
-    InputError naming them."""
-    cfg = dict(cfg or {})
-    fields = {f.name for f in dataclasses.fields(PersonalizeParams)}
-    unknown = sorted(set(cfg) - fields - STAGE_KEYS)
-    if unknown:
-        raise InputError(f"unknown key(s) {unknown} in params.personalize", path="config",
-                         fix=f"use: {', '.join(sorted(fields | STAGE_KEYS))}")
-    return PersonalizeParams(**{k: v for k, v in cfg.items() if k in fields}), {k: v for k, v in cfg.items() if k in STAGE_KEYS}
+#: the stage's metrics fragment (beside rig.npz) and its top-level key in metrics.json
+METRICS_FILE = "personalize_metrics.json"
+METRICS_KEY = "personalization"
 
 
 def read_tracked_sequence(path: str | os.PathLike, n_vertices: int) -> dict:
@@ -86,39 +80,11 @@ def neutral_frame_mask(data: Mapping[str, dict], names: list[str], neutral_frame
     return np.concatenate(out) if out else np.zeros(0, dtype=bool)
 
 
-def run_personalization(
-    tracks: Mapping[str, str | os.PathLike],
-    template: Rig,
-    out_dir: str | os.PathLike,
-    cfg: Mapping | None = None,
-    metrics_path: str | os.PathLike | None = None,
-    session_dir: str | os.PathLike | None = None,
-    neutral_frames: Mapping[str, int] | None = None,
-    cameras_json: str | os.PathLike | None = None,
-    workers: int = 1,
-) -> dict:
-    """Run the whole stage.
-
-    tracks : sequence name -> vertices.npz (in session order).
-    template : the template rig (mm), same topology as the tracked meshes.
-    out_dir : results/{session}/personalize.
-    cfg : ``config["params"]["personalize"]`` (PersonalizeParams fields + ``held_out_sequences``,
-        ``neutral_sequence``, ``neutral_frame``, ``fit_region`` ("face" | "all"), ``heatmaps``).
-    metrics_path : results/{session}/metrics.json (merged under ``personalization``).
-    cameras_json : the calibrated cameras; with ground truth, the rig is mapped from the calibrated world
-        into the ground-truth world (similarity on the camera centres) before it is compared.
-    session_dir : the session folder; its ``ground_truth/`` (if any) feeds the GT metrics.
-    neutral_frames : sequence -> the session frame number of its neutral pose (SequenceSpec.neutral_frame).
-    workers : processes for the initial rig's per-shape deformation transfer (the job's threads).
-
-    Returns the metrics dict.
-    """
-    params, opts = split_params(cfg)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    names = list(tracks)
-    held = [s for s in opts.get("held_out_sequences", []) if s in tracks]
-    missing = [s for s in opts.get("held_out_sequences", []) if s not in tracks]
+def split_sequences(names: list[str], held_out: tuple[str, ...] | list[str]) -> tuple[list[str], list[str]]:
+    """ROM sequence names -> (fitting sequences, held-out sequences); InputError when a held-out name is not
+    a ROM sequence or nothing is left to fit."""
+    held = [s for s in held_out if s in names]
+    missing = [s for s in held_out if s not in names]
     if missing:
         raise InputError(f"held-out sequence(s) {missing} are not ROM sequences of this session", path="config",
                          fix=f"params.personalize.held_out_sequences must name some of: {', '.join(names)}")
@@ -126,82 +92,107 @@ def run_personalization(
     if not fit_names:
         raise InputError("every ROM sequence is held out; nothing to fit", path="config",
                          fix="hold out fewer sequences in params.personalize.held_out_sequences")
-    data = {s: read_tracked_sequence(tracks[s], template.n_vertices) for s in names}
+    return fit_names, held
 
-    # the actor's neutral b_0: the neutral frame of the chosen sequence
-    nseq = opts.get("neutral_sequence", fit_names[0])
+
+def tracked_neutral(data: Mapping[str, dict], cfg: PersonalizeConfig, fit_names: list[str],
+                    neutral_frames: Mapping[str, int] | None) -> np.ndarray:
+    """The actor's neutral b_0 (V, 3) mm: the neutral frame of the chosen sequence (``cfg.neutral_sequence``,
+    default the first fitting one; ``cfg.neutral_frame``, default the sequence's ``neutral_frames`` entry;
+    its first tracked frame when that frame is not tracked)."""
+    nseq = cfg.neutral_sequence if cfg.neutral_sequence is not None else fit_names[0]
     if nseq not in data:
         raise InputError(f"neutral_sequence '{nseq}' is not a ROM sequence", path="config")
-    nframe = opts.get("neutral_frame", (neutral_frames or {}).get(nseq))
+    nframe = cfg.neutral_frame if cfg.neutral_frame is not None else (neutral_frames or {}).get(nseq)
     fr = data[nseq]["frames"]
     idx = 0
     if nframe is not None and fr is not None:
         hits = np.flatnonzero(fr == int(nframe))
         idx = int(hits[0]) if hits.size else 0
-    b0 = data[nseq]["vertices"][idx]
     log.info("neutral: sequence %s, tracked frame index %d", nseq, idx)
+    return data[nseq]["vertices"][idx]
 
-    region = template.face_vertices if opts.get("fit_region", "face") == "face" else None
-    # the tracked neutral is in the calibrated cameras' world, the template in its own: the template's shapes are
-    # turned with the template placed on b0 before their deformation gradients are transferred
+
+def initial_shapes(template: Rig, b0: np.ndarray, workers: int = 1) -> np.ndarray:
+    """D* (K, V, 3) mm: the template's shapes transferred onto the tracked neutral ``b0``. The tracked neutral is
+    in the calibrated cameras' world, the template in its own: the template's shapes are turned with the template
+    placed on b0 before their deformation gradients are transferred. InputError for an all-zero result."""
     Dstar = deformation_transfer_aligned(template.neutral, template.deltas, template.faces, b0,
                                          align_vertices=template.face_vertices, workers=workers)
     zero = [template.shape_names[k] for k in range(template.n_shapes) if not np.any(Dstar[k])]
     if zero:
         raise InputError(f"all-zero shape(s) in the template rig: {', '.join(zero)}",
                          fix="remove them from the template (config 'shapes:') or fix the rig files")
+    return Dstar
 
-    frames = np.concatenate([data[s]["vertices"] for s in fit_names])
-    conf = np.concatenate([data[s]["confidence"] for s in fit_names])
-    seq_ids = np.concatenate([np.full(data[s]["vertices"].shape[0], i) for i, s in enumerate(fit_names)])
-    res = personalize(b0, Dstar, template.faces, frames, conf, seq_ids, params, template.shape_names, region,
-                      neutral_mask=neutral_frame_mask(data, fit_names, neutral_frames))
-    for m in res.warnings:
-        log.warning("%s", m)
 
-    rig = dataclasses.replace(template.copy(), neutral=res.neutral, deltas=res.deltas, name="personalized")
-    initial = dataclasses.replace(template.copy(), neutral=b0, deltas=Dstar, name="initial")
-    write_rig_npz(out / "rig.npz", rig)
-    write_rig_npz(out / "initial_rig.npz", initial)
-    write_obj_folder_rig(rig, out / "rig_obj")
-    write_gltf_rig(out / "rig.gltf", rig)
+def _stack(data: Mapping[str, dict], names: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Concatenated vertices (N, V, 3), confidence (N, V) and sequence index (N,) of sequences ``names``."""
+    return (np.concatenate([data[s]["vertices"] for s in names]),
+            np.concatenate([data[s]["confidence"] for s in names]),
+            np.concatenate([np.full(data[s]["vertices"].shape[0], i) for i, s in enumerate(names)]))
 
-    # held-out frames: weights + rigid with the initial and the personalized rig
-    ho = {}
-    if held:
-        hf = np.concatenate([data[s]["vertices"] for s in held])
-        hc = np.concatenate([data[s]["confidence"] for s in held])
-        hid = np.concatenate([np.full(data[s]["vertices"].shape[0], i) for i, s in enumerate(held)])
-        vtx = None if region is None else region
-        hc_fit = hc if region is None else np.where(np.isin(np.arange(template.n_vertices), region)[None], hc, 0.0)
-        hn = neutral_frame_mask(data, held, neutral_frames)
-        ho["initial"] = fit_weights_and_rigid(b0, Dstar, hf, hc_fit, hid, params, vertices=vtx, neutral_mask=hn)
-        ho["final"] = fit_weights_and_rigid(res.neutral, res.deltas, hf, hc_fit, hid, params, vertices=vtx,
-                                            neutral_mask=hn)
 
-    seq_col = np.concatenate([np.full(data[s]["vertices"].shape[0], s) for s in fit_names])
-    frame_col = np.concatenate([frame_numbers(data[s]) for s in fit_names])
+def fit_held_out(data: Mapping[str, dict], held: list[str], b0: np.ndarray, Dstar: np.ndarray,
+                 res: PersonalizationResult, region: np.ndarray | None, n_vertices: int, cfg: PersonalizeConfig,
+                 neutral_frames: Mapping[str, int] | None) -> dict:
+    """Weights and rigid motion of the held-out frames with the initial and with the personalized rig:
+    ``{"initial": fit, "final": fit}`` (:func:`fit_weights_and_rigid` dicts); ``{}`` without held-out frames."""
+    if not held:
+        return {}
+    hf, hc, hid = _stack(data, held)
+    hc_fit = hc if region is None else np.where(np.isin(np.arange(n_vertices), region)[None], hc, 0.0)
+    hn = neutral_frame_mask(data, held, neutral_frames)
+    return {"initial": fit_weights_and_rigid(b0, Dstar, hf, hc_fit, hid, cfg.em, vertices=region, neutral_mask=hn),
+            "final": fit_weights_and_rigid(res.neutral, res.deltas, hf, hc_fit, hid, cfg.em, vertices=region,
+                                           neutral_mask=hn)}
+
+
+def _column(data: Mapping[str, dict], names: list[str], of) -> np.ndarray:
+    return np.concatenate([of(s) for s in names])
+
+
+def write_fit_arrays(out: Path, data: Mapping[str, dict], fit_names: list[str], held: list[str], Dstar: np.ndarray,
+                     res: PersonalizationResult, ho: dict, region: np.ndarray | None, shape_names: list[str]) -> None:
+    """``weights.npz``: per fitting frame weights (F, K), rotation, translation (float32), sequence, frame
+    (session frame number), kept, shape_names, and with held-out sequences heldout_weights, heldout_rotation,
+    heldout_translation, heldout_sequence, heldout_frame. ``fit.npz``: the fit at full precision (float64):
+    initial_deltas (D*, K x V x 3 mm), deltas (K, V, 3) mm, weights (F, K), heldout_weights (H, K), and
+    fit_vertices (R,), the vertices the fit was restricted to (absent when every vertex was fitted)."""
+    seq_col = _column(data, fit_names, lambda s: np.full(data[s]["vertices"].shape[0], s))
+    frame_col = _column(data, fit_names, lambda s: frame_numbers(data[s]))
     arrays = dict(weights=res.weights.astype(np.float32), rotation=res.rotations.astype(np.float32),
                   translation=res.translations.astype(np.float32), sequence=seq_col, frame=frame_col,
-                  kept=res.kept, shape_names=np.asarray(template.shape_names))
+                  kept=res.kept, shape_names=np.asarray(shape_names))
+    fit = dict(initial_deltas=Dstar, deltas=res.deltas, weights=res.weights)
     if held:
         arrays.update(heldout_weights=ho["final"]["weights"].astype(np.float32),
                       heldout_rotation=ho["final"]["rotations"].astype(np.float32),
                       heldout_translation=ho["final"]["translations"].astype(np.float32),
-                      heldout_sequence=np.concatenate([np.full(data[s]["vertices"].shape[0], s) for s in held]))
+                      heldout_sequence=_column(data, held, lambda s: np.full(data[s]["vertices"].shape[0], s)),
+                      heldout_frame=_column(data, held, lambda s: frame_numbers(data[s])))
+        fit.update(heldout_weights=ho["final"]["weights"])
+    if region is not None:
+        fit.update(fit_vertices=np.asarray(region, dtype=np.int64))
     save_npz(out / "weights.npz", **arrays)
-    write_json(out / "objective.json", {"objective": res.objective, "timings": res.timings,
-                                         "n_free_variables": res.n_free_variables, "warnings": res.warnings,
-                                         "params": dataclasses.asdict(params), "fit_sequences": fit_names,
-                                         "held_out_sequences": held})
+    save_npz(out / "fit.npz", **fit)
+
+
+def write_figures(out: Path, template: Rig, b0: np.ndarray, Dstar: np.ndarray, res: PersonalizationResult,
+                  region: np.ndarray | None, heatmaps: bool) -> None:
+    """``convergence.png`` and ``heatmaps/`` (the overview; one per shape with ``heatmaps``)."""
     plot_convergence(res.objective, out / "convergence.png")
     hm = out / "heatmaps"
     hm.mkdir(exist_ok=True)
     render_change_overview(b0, Dstar, res.deltas, template.faces, template.shape_names, hm / "overview.png", region)
-    if opts.get("heatmaps", True):
+    if heatmaps:
         for k, name in enumerate(template.shape_names):
             render_change_heatmap(b0, Dstar[k], res.deltas[k], template.faces, hm / f"{name}.png", name, region)
 
+
+def stage_metrics(res: PersonalizationResult, ho: dict) -> dict:
+    """The stage's metrics (``personalization.<key>``): fit residuals (mm; confidence-weighted and
+    ``*_unweighted``) on the fitting and, with ``ho``, the held-out frames, EM convergence and timings."""
     metrics = {
         "residual_initial_mm": res.residual_initial_mm,
         "residual_final_mm": res.residual_final_mm,
@@ -219,30 +210,82 @@ def run_personalization(
         "runtime_s": res.timings["total_s"],
         "qp_median_ms": res.timings["qp_median_ms"],
     }
-    if held:
+    if ho:
         metrics.update(heldout_residual_initial_mm=ho["initial"]["rms_mm"], heldout_residual_final_mm=ho["final"]["rms_mm"],
                        heldout_residual_reduction=1.0 - ho["final"]["rms_mm"] / ho["initial"]["rms_mm"],
                        heldout_residual_initial_unweighted_mm=ho["initial"]["rms_unweighted_mm"],
                        heldout_residual_final_unweighted_mm=ho["final"]["rms_unweighted_mm"],
                        heldout_residual_reduction_unweighted=1.0 - ho["final"]["rms_unweighted_mm"]
                        / ho["initial"]["rms_unweighted_mm"])
-
-    gt_dir = Path(session_dir) / "ground_truth" if session_dir is not None else None
-    if gt_dir is not None and (gt_dir / "actor_rig.npz").exists():
-        from rigbuild.eval.personalization import ground_truth_metrics
-
-        D0, D1 = Dstar, res.deltas
-        if cameras_json is not None:
-            from rigbuild.eval.frames import calibrated_to_ground_truth, vectors_to_ground_truth
-
-            sim = calibrated_to_ground_truth(gt_dir, cameras_json)
-            D0, D1 = vectors_to_ground_truth(Dstar, sim), vectors_to_ground_truth(res.deltas, sim)
-        metrics.update(ground_truth_metrics(gt_dir, template.shape_names, D0, D1, region,
-                                            res.weights, seq_col, frame_col,
-                                            ho.get("final", {}).get("weights"),
-                                            np.concatenate([np.full(data[s]["vertices"].shape[0], s) for s in held]) if held else None,
-                                            np.concatenate([frame_numbers(data[s]) for s in held]) if held else None))
-    write_json(out / "personalize_metrics.json", metrics)
-    if metrics_path is not None:
-        merge_metrics(metrics_path, "personalization", metrics)
     return metrics
+
+
+def run_personalization(
+    tracks: Mapping[str, str | os.PathLike],
+    template: Rig,
+    out_dir: str | os.PathLike,
+    cfg: PersonalizeConfig | Mapping | None = None,
+    neutral_frames: Mapping[str, int] | None = None,
+    workers: int = 1,
+) -> dict:
+    """Run the whole stage.
+
+    tracks : sequence name -> vertices.npz (in session order).
+    template : the template rig (mm), same topology as the tracked meshes.
+    out_dir : results/{session}/personalize (every file it writes is listed in the module docstring).
+    cfg : :class:`PersonalizeConfig` (a ``config["params"]["personalize"]`` mapping is passed through
+        :func:`rigbuild.personalize.params.from_config`).
+    neutral_frames : sequence -> the session frame number of its neutral pose (SequenceSpec.neutral_frame).
+    workers : processes for the initial rig's per-shape deformation transfer (the job's threads).
+
+    Returns the stage's metrics (also written as the fragment ``personalize_metrics.json``).
+    """
+    cfg = from_config(cfg)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    names = list(tracks)
+    fit_names, held = split_sequences(names, cfg.held_out_sequences)
+    data = {s: read_tracked_sequence(tracks[s], template.n_vertices) for s in names}
+    b0 = tracked_neutral(data, cfg, fit_names, neutral_frames)
+    region = template.face_vertices if cfg.fit_region == "face" else None
+    Dstar = initial_shapes(template, b0, workers)
+
+    frames, conf, seq_ids = _stack(data, fit_names)
+    res = personalize(b0, Dstar, template.faces, frames, conf, seq_ids, cfg.em, template.shape_names, region,
+                      neutral_mask=neutral_frame_mask(data, fit_names, neutral_frames))
+    for m in res.warnings:
+        log.warning("%s", m)
+
+    rig = dataclasses.replace(template.copy(), neutral=res.neutral, deltas=res.deltas, name="personalized")
+    initial = dataclasses.replace(template.copy(), neutral=b0, deltas=Dstar, name="initial")
+    write_rig_npz(out / "rig.npz", rig)
+    write_rig_npz(out / "initial_rig.npz", initial)
+    write_obj_folder_rig(rig, out / "rig_obj")
+    write_gltf_rig(out / "rig.gltf", rig)
+
+    ho = fit_held_out(data, held, b0, Dstar, res, region, template.n_vertices, cfg, neutral_frames)
+    write_fit_arrays(out, data, fit_names, held, Dstar, res, ho, region, template.shape_names)
+    write_json(out / "objective.json", {"objective": res.objective, "timings": res.timings,
+                                         "n_free_variables": res.n_free_variables, "warnings": res.warnings,
+                                         "params": dataclasses.asdict(cfg.em), "fit_sequences": fit_names,
+                                         "held_out_sequences": held})
+    write_figures(out, template, b0, Dstar, res, region, cfg.heatmaps)
+    metrics = stage_metrics(res, ho)
+    write_metrics_fragment(out / METRICS_FILE, METRICS_KEY, metrics)
+    return metrics
+
+
+def load_template(spec: str) -> Rig:
+    """The template rig of a rig spec (``ict``: the ICT-FaceKit model under ``$RIGBUILD_DATA``)."""
+    from rigbuild.io.rigs import load_rig
+    from rigbuild.paths import ict_dir
+
+    return load_rig(ict_dir() if spec == "ict" else spec)
+
+
+def run_personalize(tracks: Mapping[str, str | os.PathLike], template_rig: str, out_dir: str | os.PathLike,
+                    params: Mapping | None, neutral_frames: Mapping[str, int] | None, workers: int = 1) -> dict:
+    """Rule ``personalize``: ``params`` is the raw ``config["params"]["personalize"]`` block, ``template_rig``
+    the resolved rig spec; see :func:`run_personalization`."""
+    cfg = from_config(params)
+    return run_personalization(tracks, load_template(str(template_rig)), out_dir, cfg, neutral_frames, workers)

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, fields
-from typing import Any, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 
@@ -14,76 +14,8 @@ from rigbuild.reconstruct.filter import _map_views, consistency_filter, views_wi
 from rigbuild.reconstruct.fuse import (crop_mesh, keep_components, normalize_rows, pixel_normals, poisson_mesh, robust_bbox,
                                        tsdf_mesh, voxel_average)
 from rigbuild.reconstruct.masks import foreground_mask, image_problem
-from rigbuild.reconstruct.stereo import (StereoParams, auto_depth_range, compute_depth_map, select_neighbours,
-                                         to_gray_float, undistort_view)
-
-
-@dataclass
-class ReconstructParams:
-    """All parameters of the stage (``config["params"]["reconstruct"]``; unknown keys are an error).
-
-    stereo : :class:`StereoParams` (its fields are given flat in the config).
-    mask_threshold : background threshold on the blurred grey image in [0, 1] (0 = no mask).
-    mask_dilate_px, mask_erode_px : morphological close of the mask (see ``foreground_mask``).
-    filter_max_angle_deg, filter_views : each view's depth is checked against at most ``filter_views``
-        views whose optical axes are within ``filter_max_angle_deg`` (nearest first).
-    consistency_abs_mm, consistency_rel : depth agreement tolerance ``abs + rel * z``.
-    min_views : views (reference included) that must agree for a pixel to be kept.
-    point_voxel_mm : voxel size of the fused point cloud (averaging); 0 keeps every fused pixel.
-    surface : ``"tsdf"`` (open surface of the seen region) or ``"poisson"`` (closed surface).
-    tsdf_voxel_mm, tsdf_trunc_voxels : TSDF resolution and truncation.
-    poisson_depth, poisson_density_quantile : Poisson octree depth and density trimming (0 = closed).
-    surface_voxel_mm : the fused points are averaged in voxels of this size before Poisson.
-    poisson_scale : Poisson domain / point bounding box (>= 2 lets a closed surface close inside it).
-    crop_distance_mm : mesh parts farther than this from the fused points are removed (0 = no crop: the
-        largest component of the Poisson surface is kept, a closed surface of the object).
-    bbox_mm : [[x0, y0, z0], [x1, y1, z1]] world box (head / object) points are cropped to; None = the
-        robust bounding box of the fused points.
-    on_bad_frame : ``"skip"`` (warn, record, go on) or ``"fail"`` (raise) for missing/black/saturated views.
-    threads : views processed in parallel by stereo and filtering (set it to the job's cores).
-    """
-
-    stereo: StereoParams = field(default_factory=StereoParams)
-    mask_threshold: float = 0.08
-    mask_dilate_px: int = 10
-    mask_erode_px: int = 7
-    filter_max_angle_deg: float = 70.0
-    filter_views: int = 4
-    consistency_abs_mm: float = 0.5
-    consistency_rel: float = 0.002
-    min_views: int = 2
-    point_voxel_mm: float = 0.5
-    surface: str = "poisson"
-    tsdf_voxel_mm: float = 1.0
-    tsdf_trunc_voxels: float = 4.0
-    poisson_depth: int = 8
-    surface_voxel_mm: float = 1.0
-    poisson_scale: float = 1.1
-    poisson_density_quantile: float = 0.0
-    crop_distance_mm: float = 1.5
-    bbox_mm: list | None = None
-    on_bad_frame: str = "skip"
-    threads: int = 2
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any] | None, source: str = "config params.reconstruct") -> "ReconstructParams":
-        """Flat dict (stereo fields and the fields above) -> params; unknown keys raise InputError."""
-        d = dict(d or {})
-        own = {f.name for f in fields(cls)} - {"stereo"}
-        st = {f.name for f in fields(StereoParams)}
-        unknown = sorted(set(d) - own - st)
-        if unknown:
-            raise InputError(f"unknown reconstruct parameters {unknown}", path=source,
-                             fix=f"use only {sorted(own | st)}")
-        p = cls(stereo=StereoParams.from_dict({k: v for k, v in d.items() if k in st}, source),
-                **{k: v for k, v in d.items() if k in own})
-        if p.surface not in ("tsdf", "poisson"):
-            raise InputError(f"surface must be 'tsdf' or 'poisson', got {p.surface!r}", path=source)
-        if p.on_bad_frame not in ("skip", "fail"):
-            raise InputError(f"on_bad_frame must be 'skip' or 'fail', got {p.on_bad_frame!r}", path=source)
-        if p.min_views < 1:
-            raise InputError(f"min_views must be >= 1, got {p.min_views}", path=source)
-        return p
+from rigbuild.reconstruct.params import ReconstructParams
+from rigbuild.reconstruct.stereo import auto_depth_range, compute_depth_map, select_neighbours, to_gray_float, undistort_view
 
 
 @dataclass

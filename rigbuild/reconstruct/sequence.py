@@ -6,13 +6,17 @@ Outputs under ``out_dir`` (``results/<session>/reconstruct/<sequence>/``)::
     points/<frame:06d>.ply    fused oriented point cloud (mm, normals, colours)
     mesh/<frame:06d>.ply      surface cropped to the head
     coverage/<frame:06d>.png  per-camera coverage tiles (green: depth; red: foreground without depth)
-    frames/<frame:06d>.json   frame record: stats, skip reason, errors vs ground truth (synthetic sessions)
+    geometry/<frame:06d>.npz  the fused points and the mesh at full (float64) precision, for evaluation
+    frames/<frame:06d>.json   frame record: stats and skip reason
     coverage.png              coverage per camera and frame (skipped frames marked)
-    recon_metrics.json        per-frame stats, skipped frames with reasons, summary
+    recon_summary.json        per-frame stats, skipped frames with reasons, summary
+
+Nothing here reads ground truth: the ``eval_reconstruction*`` rules (rules/eval_reconstruct.smk) score
+the geometry files.
 
 A frame with a missing, mis-sized, black or saturated view is *skipped* (``on_bad_frame: skip``: a
 warning, an empty depth file flagged ``skipped`` with the reason, empty PLYs, and an entry in
-``recon_metrics.json``) or *fails* the job (``on_bad_frame: fail``). Cameras that do not match the session
+``recon_summary.json``) or *fails* the job (``on_bad_frame: fail``). Cameras that do not match the session
 (missing ids, other image size) always fail.
 """
 
@@ -27,8 +31,28 @@ import numpy as np
 from rigbuild.camera import Camera
 from rigbuild.errors import InputError
 from rigbuild.progress import progress
-from rigbuild.reconstruct.frame import FrameReconstruction, ReconstructParams, reconstruct_frame
+from rigbuild.reconstruct.frame import FrameReconstruction, reconstruct_frame
+from rigbuild.reconstruct.params import ReconstructParams
 from rigbuild.reconstruct.stereo import pinhole
+
+SUMMARY_FILE = "recon_summary.json"
+
+
+def write_geometry(path: str | os.PathLike, points: np.ndarray, mesh_vertices: np.ndarray,
+                   mesh_faces: np.ndarray) -> None:
+    """``geometry/<frame>.npz``: points (P, 3), mesh_vertices (V, 3) float64 mm, mesh_faces (F, 3) int64,
+    uncompressed (the PLYs hold float32; evaluation measures the reconstruction itself)."""
+    from rigbuild.io.atomic import save_npz
+
+    save_npz(path, compressed=False, points=np.asarray(points, np.float64).reshape(-1, 3),
+             mesh_vertices=np.asarray(mesh_vertices, np.float64).reshape(-1, 3),
+             mesh_faces=np.asarray(mesh_faces, np.int64).reshape(-1, 3))
+
+
+def read_geometry(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """The arrays written by :func:`write_geometry`."""
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in ("points", "mesh_vertices", "mesh_faces")}
 
 
 def match_cameras(session_cameras: Sequence[str], width: int, height: int, cameras: Sequence[Camera],
@@ -122,12 +146,11 @@ def coverage_plot(path: Path, frames: Sequence[int], camera_ids: Sequence[str], 
 
 
 def process_frame(frame: int, paths: Sequence[Path], cameras: Sequence[Camera], params: ReconstructParams,
-                  out_dir: str | os.PathLike, name: str = "sequence", log: Callable[[str], None] = print,
-                  evaluate: Callable[[int, FrameReconstruction], dict] | None = None) -> dict:
-    """Reconstruct one frame from its image files and write ``depth/``, ``points/``, ``mesh/`` and
-    ``coverage/`` files for it; a bad frame is skipped (empty files flagged ``skipped``) or raises, per
-    ``params.on_bad_frame``. Returns the frame record: ``frame``, ``skipped`` (reason or None), and for a
-    reconstructed frame its stats and, with ``evaluate``, ``ground_truth`` (errors vs ground truth)."""
+                  out_dir: str | os.PathLike, name: str = "sequence", log: Callable[[str], None] = print) -> dict:
+    """Reconstruct one frame from its image files and write ``depth/``, ``points/``, ``mesh/``,
+    ``geometry/`` and ``coverage/`` files for it; a bad frame is skipped (empty files flagged ``skipped``)
+    or raises, per ``params.on_bad_frame``. Returns the frame record: ``frame``, ``skipped`` (reason or
+    None), and for a reconstructed frame its stats."""
     import cv2
 
     from rigbuild.io.atomic import atomic_path
@@ -151,6 +174,7 @@ def process_frame(frame: int, paths: Sequence[Path], cameras: Sequence[Camera], 
                     np.zeros((len(cameras), H, W), np.float32), frame=f, skipped=True, reason=reason)
         write_ply(out / "points" / f"{f:06d}.ply", np.zeros((0, 3)), normals=np.zeros((0, 3)), colors=np.zeros((0, 3)))
         write_ply(out / "mesh" / f"{f:06d}.ply", np.zeros((0, 3)), faces=np.zeros((0, 3), np.int64))
+        write_geometry(out / "geometry" / f"{f:06d}.npz", np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
         tile = np.zeros((240, 320, 3), np.uint8)
         cv2.putText(tile, f"frame {f} skipped", (10, 120), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 255), 2)
         with atomic_path(out / "coverage" / f"{f:06d}.png", suffix=".png") as tmp:
@@ -159,6 +183,7 @@ def process_frame(frame: int, paths: Sequence[Path], cameras: Sequence[Camera], 
     write_depth(out / "depth" / f"{f:06d}.npz", rec.cameras, rec.depth, rec.confidence, rec.n_views, frame=f)
     write_ply(out / "points" / f"{f:06d}.ply", rec.points, normals=rec.normals, colors=rec.colors)
     write_ply(out / "mesh" / f"{f:06d}.ply", rec.mesh_vertices, faces=rec.mesh_faces)
+    write_geometry(out / "geometry" / f"{f:06d}.npz", rec.points, rec.mesh_vertices, rec.mesh_faces)
     with atomic_path(out / "coverage" / f"{f:06d}.png", suffix=".png") as tmp:
         cv2.imwrite(str(tmp), coverage_tiles(rec, images))
     record = {"frame": f, "skipped": None}
@@ -166,23 +191,17 @@ def process_frame(frame: int, paths: Sequence[Path], cameras: Sequence[Camera], 
                                              "cpu_seconds", "neighbours")})
     msg = (f"{name} frame {f}: {rec.stats['n_points']} points, {rec.stats['n_mesh_faces']} faces, mean coverage "
            f"{np.mean(list(rec.stats['coverage'].values())):.3f}, {rec.stats['seconds']['total']:.1f} s")
-    if evaluate is not None:
-        ev = evaluate(f, rec)
-        record["ground_truth"] = ev
-        msg += (f"; vs ground truth: median {ev['median_error_mm']:.3f} mm, p90 {ev['p90_error_mm']:.3f} mm, "
-                f"completeness {ev['completeness']:.3f}")
     log(msg)
     return record
 
 
 def summarize_sequence(records: Sequence[dict], camera_ids: Sequence[str], out_dir: str | os.PathLike,
                        name: str = "sequence") -> dict:
-    """Write ``coverage.png`` and ``recon_metrics.json`` from the frame records; return the summary.
+    """Write ``coverage.png`` and ``recon_summary.json`` from the frame records; return the summary.
 
     Summary: ``frames``, ``reconstructed``, ``skipped`` {frame: reason}, ``mean_coverage``,
-    ``min_coverage``, ``seconds_per_frame``, ``per_frame``; with ground truth, ``ground_truth`` holding the
-    worst frame's ``median_error_mm``/``p90_error_mm``/``completeness`` (the acceptance is per frame) and
-    the means over frames (``mean_*``).
+    ``min_coverage``, ``seconds_per_frame``, ``per_frame`` (the frame records). The errors against ground
+    truth (synthetic sessions) are the ``eval_reconstruction_sequence`` rule's.
     """
     from rigbuild.io.atomic import write_json
 
@@ -205,103 +224,17 @@ def summarize_sequence(records: Sequence[dict], camera_ids: Sequence[str], out_d
         "seconds_per_frame": float(np.mean([r["seconds"]["total"] for r in done])) if done else float("nan"),
         "per_frame": {str(r["frame"]): r for r in records},
     }
-    ev = [r["ground_truth"] for r in done if "ground_truth" in r]
-    if ev:
-        summary["ground_truth"] = {
-            "median_error_mm": float(max(e["median_error_mm"] for e in ev)),
-            "p90_error_mm": float(max(e["p90_error_mm"] for e in ev)),
-            "completeness": float(min(e["completeness"] for e in ev)),
-            "mean_median_error_mm": float(np.mean([e["median_error_mm"] for e in ev])),
-            "mean_p90_error_mm": float(np.mean([e["p90_error_mm"] for e in ev])),
-            "mean_completeness": float(np.mean([e["completeness"] for e in ev])),
-            "point_median_error_mm": float(max(e["point_median_error_mm"] for e in ev)),
-            "frames_evaluated": len(ev),
-        }
-    write_json(Path(out_dir) / "recon_metrics.json", summary)
+    write_json(Path(out_dir) / SUMMARY_FILE, summary)
     return summary
 
 
 def reconstruct_sequence(image_path: Callable[[str, int], Path], cameras: Sequence[Camera], frames: Sequence[int],
                          params: ReconstructParams, out_dir: str | os.PathLike, name: str = "sequence",
-                         log: Callable[[str], None] = print,
-                         evaluate: Callable[[int, FrameReconstruction], dict] | None = None) -> dict:
+                         log: Callable[[str], None] = print) -> dict:
     """:func:`process_frame` for every frame, then :func:`summarize_sequence` (one process, in order).
 
     image_path(camera_id, frame) -> the image file.
     """
-    records = [process_frame(f, [image_path(c.id, f) for c in cameras], cameras, params, out_dir, name, log, evaluate)
+    records = [process_frame(f, [image_path(c.id, f) for c in cameras], cameras, params, out_dir, name, log)
                for f in progress(frames, f"reconstructing {name}", total=len(frames), unit="frame")]
     return summarize_sequence(records, [c.id for c in cameras], out_dir, name)
-
-
-# ------------------------------------------------------------------------------ Snakemake stage
-def _stage_inputs(session_root, sequence: str, cameras_json, params: dict | None):
-    from rigbuild.io.cameras import read_cameras
-    from rigbuild.session import read_session
-
-    spec = read_session(session_root)
-    seq = spec.sequence(sequence)
-    p = ReconstructParams.from_dict(params)
-    cams = match_cameras(spec.cameras, spec.width, spec.height, read_cameras(cameras_json), str(cameras_json))
-    return spec, seq, p, cams
-
-
-def run_frame_job(session_root: str | os.PathLike, sequence: str, frames: Sequence[int],
-                  cameras_json: str | os.PathLike, params: dict | None, out_dir: str | os.PathLike,
-                  log: Callable[[str], None] = print) -> list[dict]:
-    """Rule ``reconstruct_frame``: reconstruct frames of one sequence; each frame's record
-    (stats, skip reason, ground-truth errors when the session has ``ground_truth/``) is written to
-    ``out_dir/frames/<frame:06d>.json``."""
-    from rigbuild.eval.reconstruction import SequenceEvaluator
-    from rigbuild.io.atomic import write_json
-
-    spec, seq, p, cams = _stage_inputs(session_root, sequence, cameras_json, params)
-    bad = [f for f in frames if f not in seq.frames]
-    if bad:
-        raise InputError(f"frames {bad} are not in sequence {sequence} ({seq.start}..{seq.end})",
-                         path=Path(session_root) / "session.yaml")
-    evaluator = SequenceEvaluator(session_root, sequence, cams) \
-        if SequenceEvaluator.available(session_root, sequence) else None
-    records = []
-    for f in progress(frames, f"reconstructing {sequence}", total=len(frames), unit="frame"):
-        rec = process_frame(f, [spec.rom_image(sequence, c.id, f) for c in cams], cams, p, out_dir, sequence, log,
-                            evaluator)
-        write_json(Path(out_dir) / "frames" / f"{f:06d}.json", rec)
-        records.append(rec)
-    return records
-
-
-def run_sequence_summary(session_root: str | os.PathLike, sequence: str, frame_jsons: Sequence[str | os.PathLike],
-                         out_dir: str | os.PathLike, metrics_path: str | os.PathLike | None) -> dict:
-    """Rule ``reconstruct_summary``: frame records -> ``coverage.png``, ``recon_metrics.json`` and
-    ``reconstruction.*`` in ``metrics_path`` (per sequence under ``sequences.<name>``; the session-level
-    acceptance keys ``median_error_mm``, ``p90_error_mm``, ``completeness`` are the worst over sequences)."""
-    import json
-
-    from rigbuild.io.metrics import merge_metrics, read_metrics
-    from rigbuild.session import read_session
-
-    spec = read_session(session_root)
-    records = [json.loads(Path(p).read_text()) for p in frame_jsons]
-    summary = summarize_sequence(records, spec.cameras, out_dir, sequence)
-    if metrics_path is not None:
-        values = {"mean_coverage": summary["mean_coverage"], "seconds_per_frame": summary["seconds_per_frame"],
-                  "frames": len(summary["frames"]), "skipped_frames": len(summary["skipped"])}
-        values.update(summary.get("ground_truth", {}))
-        per_seq = dict(read_metrics(metrics_path).get("reconstruction", {}).get("sequences", {}))
-        per_seq[sequence] = values
-        merge_metrics(metrics_path, "reconstruction", {"sequences": per_seq, **pool_sequences(per_seq)})
-    return summary
-
-
-def pool_sequences(per_seq: dict) -> dict:
-    """Session-level ``reconstruction.*`` from per-sequence values: the worst sequence's median/p90 error
-    and completeness (acceptance keys), mean coverage, total skipped frames."""
-    out = {"skipped_frames": int(sum(v.get("skipped_frames", 0) for v in per_seq.values())),
-           "mean_coverage": float(np.nanmean([v.get("mean_coverage", np.nan) for v in per_seq.values()]))}
-    ev = [v for v in per_seq.values() if "median_error_mm" in v]
-    if ev:
-        out["median_error_mm"] = float(max(v["median_error_mm"] for v in ev))
-        out["p90_error_mm"] = float(max(v["p90_error_mm"] for v in ev))
-        out["completeness"] = float(min(v["completeness"] for v in ev))
-    return out

@@ -26,72 +26,15 @@ Everything is vectorized over the pixels of a region of interest (the foreground
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
-from typing import Any, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Sequence
 
 import cv2
 import numpy as np
 
 from rigbuild.camera import Camera
 from rigbuild.errors import InputError
-
-
-@dataclass
-class StereoParams:
-    """Parameters of :func:`compute_depth_map` (the ``reconstruct`` config section uses the same names).
-
-    n_neighbours : views matched against each reference view.
-    min_angle_deg, max_angle_deg : allowed angle between optical axes of a reference and a neighbour.
-    top_k : NCC averaged over the best ``top_k`` neighbours per pixel and hypothesis.
-    levels : pyramid levels (1 = full resolution only); the sweep runs at level ``levels - 1``.
-    window : NCC window side (odd), pixels, at every level.
-    sweep_step_px : largest neighbour-image displacement between sweep planes at the coarsest level.
-    refine_radius : hypotheses ``-R..R`` tested around the upsampled estimate on finer levels.
-    refine_step_px : displacement between refinement hypotheses (pixels of that level).
-    final_step_px : step of an extra sub-pixel pass at full resolution (0 = none).
-    min_ncc : pixels whose best aggregated NCC is lower get no depth.
-    min_texture : pixels whose reference-window standard deviation (0..1 intensities) is lower get no depth.
-    depth_range_mm : (near, far) camera z range, or None for ``convergence point +- auto_depth_radius_mm``.
-    auto_depth_radius_mm : half-size of the automatic depth range.
-    interpolation : ``"linear"`` or ``"cubic"`` resampling of neighbour images.
-    fill_sigma_px : on coarse levels, weak pixels are re-initialized from strong ones within about this
-        Gaussian radius (pixels of that level) before refinement (0 = 3x3 median only).
-    """
-
-    n_neighbours: int = 2
-    min_angle_deg: float = 5.0
-    max_angle_deg: float = 50.0
-    top_k: int = 1
-    levels: int = 3
-    window: int = 7
-    sweep_step_px: float = 2.0
-    refine_radius: int = 3
-    refine_step_px: float = 0.5
-    final_step_px: float = 0.0
-    min_ncc: float = 0.5
-    min_texture: float = 0.01
-    depth_range_mm: tuple[float, float] | None = None
-    auto_depth_radius_mm: float = 200.0
-    interpolation: str = "linear"
-    fill_sigma_px: float = 3.0
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any] | None, source: str = "config params.reconstruct") -> "StereoParams":
-        """Take the fields this class knows from ``d`` (other keys are ignored)."""
-        d = dict(d or {})
-        names = {f.name for f in fields(cls)}
-        kw = {k: v for k, v in d.items() if k in names}
-        if kw.get("depth_range_mm") is not None:
-            rng = tuple(float(x) for x in kw["depth_range_mm"])
-            if len(rng) != 2 or not 0 < rng[0] < rng[1]:
-                raise InputError(f"depth_range_mm must be [near, far] with 0 < near < far, got {rng}", path=source)
-            kw["depth_range_mm"] = rng
-        p = cls(**kw)
-        if p.window % 2 == 0 or p.window < 3:
-            raise InputError(f"window must be odd and >= 3, got {p.window}", path=source)
-        if p.interpolation not in ("linear", "cubic"):
-            raise InputError(f"interpolation must be 'linear' or 'cubic', got {p.interpolation}", path=source)
-        return p
+from rigbuild.reconstruct.params import StereoParams  # noqa: F401 (the parameters of compute_depth_map)
 
 
 # ----------------------------------------------------------------------------------------- images

@@ -1,7 +1,7 @@
 """Build the self-contained HTML session report.
 
 Every stage section shows its numbers from ``metrics.json`` with pass/warn/fail against the thresholds
-(:mod:`rigbuild.eval.thresholds`, overridable in the config) and the pictures the stage wrote. Images
+(:mod:`rigbuild.report.thresholds`, overridable in the config) and the pictures the stage wrote. Images
 are embedded as base64 so the file opens offline; rule timings come from Snakemake ``benchmark:`` files.
 """
 
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from rigbuild.eval.thresholds import status
+from rigbuild.report.thresholds import status
 from rigbuild.io.metrics import flatten_metrics
 from rigbuild.progress import progress
 
@@ -44,9 +44,9 @@ SECTIONS = [
             ["personalize/convergence.png", "personalize/heatmaps/*.png"],
             "EM objective per iteration (must not increase) and per-shape change against the initial rig."),
     Section("retargeting", "Retargeting", ["retarget"],
-            ["retarget/*/*/*/curves.png", "retarget/*/*/*/velocity_error.png", "retarget/*/*/*/preview.png"],
-            "Weight curves per character (against ground truth where it exists), velocity error, and "
-            "actor/character side by side.", max_images=24),
+            ["retarget/*/*/*/velocity_error.png", "retarget/*/*/*/preview.png"],
+            "Velocity error of the spacetime solve against its per-frame baselines (Seol), and actor and "
+            "character side by side at the most active frames.", max_images=24),
 ]
 
 _CSS = """
@@ -131,3 +131,14 @@ def build_report(results_dir: str | os.PathLike, session: str, metrics: Mapping[
     return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>rigbuild report: {html.escape(session)}</title>"
             f"<style>{_CSS}</style></head><body><h1>rigbuild session report: {html.escape(session)}</h1>"
             f"<p class='sub'>{' · '.join(nav)}</p>{summary}{''.join(parts)}</body></html>\n")
+
+
+def write_report(metrics_json: str | os.PathLike, results_dir: str | os.PathLike, session: str,
+                 report_params: Mapping[str, Any] | None, out_html: str | os.PathLike) -> None:
+    """Rule ``report``: read ``metrics.json``, build the page with ``params.report``'s thresholds, write it."""
+    from rigbuild.io.atomic import write_text
+    from rigbuild.io.metrics import read_metrics
+    from rigbuild.report.params import from_config
+
+    params = from_config(report_params)
+    write_text(out_html, build_report(results_dir, session, read_metrics(metrics_json), params.thresholds))

@@ -8,25 +8,19 @@ Conventions
 
 Contents: marker-to-character mapping by marker name (with clear errors), marker-set checks for
 performances, zero-phase low-pass filtering of marker trajectories, per-frame rigid stabilization of marker
-frames, the "observable shapes" test, weight-curve
-metrics (MAE, per-shape Pearson correlation) and weight-curve writers (CSV, JSON).
+frames, the actor's averaged neutral and the markers' rigidity weights. Weight-curve files:
+:mod:`rigbuild.io.curves`; ground-truth metrics: :mod:`rigbuild.eval.retarget`.
 """
 
 from __future__ import annotations
 
-import io
 import os
-from typing import Mapping, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from rigbuild.errors import InputError
-from rigbuild.io.atomic import write_json, write_text
 from rigbuild.rig import Rig
-
-#: A shape is "observable" by a marker set when some marker moves at least this much (mm) at weight 1.
-OBSERVABLE_MM = 1.0
-
 
 # ----------------------------------------------------------------------------------- marker mapping
 def map_markers_to_vertices(
@@ -247,8 +241,7 @@ def average_neutral(frames: np.ndarray, rounds: int = 2) -> np.ndarray:
     Each frame is rigidly aligned (uniform weights: all frames show the same expression) onto the current
     mean, starting from the frame with the most visible markers, and the aligned frames are averaged per
     marker over the frames where it is visible. With N frames the marker noise of the neutral drops by
-    sqrt(N); every displacement ``a_f - a0`` carries that noise as a constant offset otherwise (measured on
-    the synthetic ICT actor: 0.2 mm noise in a one-frame neutral costs 0.01-0.05 of mean correlation).
+    sqrt(N); every displacement ``a_f - a0`` carries that noise as a constant offset otherwise.
     Raises :class:`InputError` if a marker is visible in no frame.
     """
     X = np.asarray(frames, dtype=np.float64)
@@ -278,96 +271,3 @@ def rigidity_weights(sparse_deltas: np.ndarray, floor: float = 0.05) -> np.ndarr
     r = r / max(r.max(), 1e-12)
     w = 1.0 / (floor + r) ** 2
     return w / w.max()
-
-
-# ------------------------------------------------------------------------------------------ metrics
-def observable_shapes(sparse_deltas: np.ndarray, threshold_mm: float = OBSERVABLE_MM) -> np.ndarray:
-    """(K,) bool: shape k moves some marker by at least ``threshold_mm`` at weight 1.
-
-    sparse_deltas : (K, M, 3) in mm (e.g. the actor's ground-truth ``rig.deltas[:, marker_vertices]``).
-    """
-    return np.linalg.norm(sparse_deltas, axis=2).max(1) >= threshold_mm
-
-
-def active_shapes(weights_true: np.ndarray, min_range: float = 0.05) -> np.ndarray:
-    """(K,) bool: ground-truth curve k varies (max - min over frames >= ``min_range``)."""
-    w = np.asarray(weights_true, dtype=np.float64)
-    return (w.max(0) - w.min(0)) >= min_range
-
-
-def weight_mae(weights: np.ndarray, weights_true: np.ndarray, shapes: np.ndarray | None = None) -> float:
-    """Mean absolute error over frames and the selected shapes ((K,) bool or indices; default all)."""
-    e = np.abs(np.asarray(weights, float) - np.asarray(weights_true, float))
-    if shapes is not None:
-        e = e[:, shapes]
-    return float(e.mean()) if e.size else float("nan")
-
-
-def per_shape_correlation(weights: np.ndarray, weights_true: np.ndarray) -> np.ndarray:
-    """(K,) Pearson correlation over frames between estimated and true curves (NaN for a constant curve)."""
-    a = np.asarray(weights, float)
-    b = np.asarray(weights_true, float)
-    a = a - a.mean(0)
-    b = b - b.mean(0)
-    den = np.sqrt((a * a).sum(0) * (b * b).sum(0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        r = (a * b).sum(0) / den
-    r[den <= 1e-12] = np.nan
-    return r
-
-
-def mean_correlation(weights: np.ndarray, weights_true: np.ndarray, shapes: np.ndarray | None = None) -> float:
-    """Mean per-shape Pearson correlation over the selected shapes (a constant estimate counts as 0)."""
-    r = per_shape_correlation(weights, weights_true)
-    if shapes is not None:
-        r = r[shapes]
-    r = np.where(np.isnan(r), 0.0, r)
-    return float(r.mean()) if r.size else float("nan")
-
-
-# ---------------------------------------------------------------------------------- curve writers
-def weight_curves_csv_text(weights: np.ndarray, shape_names: Sequence[str], fps: float) -> str:
-    """CSV text: header ``frame,time,<shape names>``, one row per frame (time in seconds)."""
-    w = np.asarray(weights, dtype=np.float64)
-    if w.ndim != 2 or w.shape[1] != len(shape_names):
-        raise InputError(f"weights must be (F, {len(shape_names)}), got {w.shape}")
-    F = w.shape[0]
-    table = np.column_stack([np.arange(F), np.arange(F) / float(fps), w])
-    buf = io.StringIO()
-    buf.write("frame,time," + ",".join(shape_names) + "\n")
-    np.savetxt(buf, table, delimiter=",", fmt=["%d", "%.6f"] + ["%.6f"] * w.shape[1])
-    return buf.getvalue()
-
-
-def write_weight_curves_csv(path: str | os.PathLike, weights: np.ndarray, shape_names: Sequence[str], fps: float) -> None:
-    """Write weight curves (F, K) as CSV (``frame,time,<shape>...``) atomically."""
-    write_text(path, weight_curves_csv_text(weights, shape_names, fps))
-
-
-def read_weight_curves_csv(path: str | os.PathLike) -> tuple[np.ndarray, list[str], np.ndarray]:
-    """Read a CSV written by :func:`write_weight_curves_csv`: weights (F, K), shape names, times (F,)."""
-    with open(path, encoding="utf-8") as fh:
-        header = fh.readline().strip().split(",")
-    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    return data[:, 2:], header[2:], data[:, 1]
-
-
-def write_weight_curves_json(
-    path: str | os.PathLike,
-    weights: np.ndarray,
-    shape_names: Sequence[str],
-    fps: float,
-    meta: Mapping | None = None,
-) -> None:
-    """Write ``{"fps", "n_frames", "shape_names", "weights": {name: [F values]}, "meta"}`` atomically."""
-    w = np.asarray(weights, dtype=np.float64)
-    write_json(
-        path,
-        {
-            "fps": float(fps),
-            "n_frames": int(w.shape[0]),
-            "shape_names": list(shape_names),
-            "weights": {n: np.round(w[:, k], 6).tolist() for k, n in enumerate(shape_names)},
-            "meta": dict(meta or {}),
-        },
-    )

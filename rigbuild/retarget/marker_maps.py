@@ -1,4 +1,4 @@
-"""Marker-to-vertex maps for characters, stored as data (``rigbuild/data/markers/<name>.json``).
+"""Marker-to-vertex maps for characters, stored as data (``rigbuild/assets/marker_sets/<name>.json``).
 
 A map file is ``{"rig": ..., "markers": {marker name: vertex id}, "contact_pairs": [[a, b], ...] (optional),
 "method": how it was made}``. :func:`build_landmark_marker_map` makes one for a rig with Multi-PIE landmarks
@@ -21,7 +21,7 @@ from rigbuild.geometry.rigid import fit_similarity
 from rigbuild.io.atomic import write_json
 from rigbuild.rig import Rig
 
-MARKER_DATA_DIR = Path(__file__).resolve().parent.parent / "data" / "markers"
+MARKER_DATA_DIR = Path(__file__).resolve().parent.parent / "assets" / "marker_sets"
 
 #: AnimFace marker -> Multi-PIE 68 landmark index (or pair of indices, averaged). Actor's left = rig +x.
 ANIMFACE_LANDMARKS: dict[str, tuple[int, ...]] = {

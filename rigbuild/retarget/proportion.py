@@ -41,10 +41,9 @@ import numpy as np
 from scipy.spatial.distance import cdist
 
 from rigbuild.errors import InputError
-
-KERNELS = ("r", "r3", "tps")
-MARKER_MODES = ("rbf", "jacobian", "local_affine", "affine", "none")
-MODES = MARKER_MODES + ("deformation",)
+from rigbuild.retarget.params import SCALE_MATCH_KERNELS as KERNELS
+from rigbuild.retarget.params import SCALE_MATCH_MARKER_MODES as MARKER_MODES
+from rigbuild.retarget.params import SCALE_MATCH_MODES as MODES
 
 
 def rbf_kernel(r: np.ndarray, kernel: str = "r") -> np.ndarray:
@@ -208,8 +207,7 @@ def transfer_displacements_mesh(pmap: ProportionMap, target_mesh_neutral: np.nda
     marker_vertices : (M,) vertex ids of the markers (in the order of ``pmap.centers``).
     workers : processes for the per-shape solves (see ``deformation_transfer``).
     The rotation of the map (:func:`polar_rotation` of the RBF's linear part ``A``: identity for any
-    pure stretch, unlike a Kabsch fit of anisotropically scaled point sets, which turns 2-3 degrees
-    on the stylized character and costs 0.01-0.02 of correlation) is factored out first, so that the transfer sees only the change of scale and
+    pure stretch, unlike a Kabsch fit of anisotropically scaled point sets, which turns them) is factored out first, so that the transfer sees only the change of scale and
     proportions (deformation transfer copies gradients in world axes: a proxy rotated against the
     target would get un-rotated expressions); the result is rotated back. A similarity map therefore gives ``s R d`` and the
     identity map returns ``d``. Returns (K, M, 3) mm.

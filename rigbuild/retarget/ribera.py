@@ -33,12 +33,11 @@ the prior is evaluated on the character scaled by ``head_scale`` = RMS radius of
 converts them. E_Align's alpha and beta need no conversion: E_Match, E_Mesh and E_CEG are all squared marker
 displacements (cotangent and CEG weights are dimensionless), so 0.01 / 0.1 mean the same in mm.
 
-Beyond the paper (options, measured in ``benchmarks/bench_retarget_ribera.py``; the faithful path stays):
+Beyond the paper (options; the faithful path stays):
 
 - ``RetargetParams.rigid = "joint"`` (default): E_Fit also minimizes over a residual small rigid motion of
-  each stabilized frame (eliminated exactly, :class:`RiberaRetargeter`). A rigid fit to the neutral absorbs
-  part of every expression; with the actor's true marker blendshapes that alone capped the mean correlation
-  at 0.91 (0.98 with the joint fit). ``"fixed"`` is the old behaviour.
+  each stabilized frame (eliminated exactly, :class:`RiberaRetargeter`); a rigid fit to the neutral alone
+  absorbs part of every expression. ``"fixed"``: the stabilized frame as is.
 - ``TransferParams.match = "fit"`` (method ``ribera_fit``, :func:`fit_match_transfer`): E_Match matches every
   training frame with all shapes at their solved (sparse) activations instead of eq. 10's similarity-weighted
   mean of masked keys, which shrinks the shapes.
@@ -59,15 +58,18 @@ from rigbuild.errors import InputError
 from rigbuild.rig import Rig
 from rigbuild.geometry.rigid import fit_similarity
 from rigbuild.retarget.common import stabilize, visible_mask
+from rigbuild.retarget.methods import RIBERA_METHODS
+from rigbuild.retarget.params import (  # noqa: F401  (re-exported: the solver's parameter classes)
+    CM2_TO_MM2,
+    PAPER_ALPHA,
+    PAPER_BETA,
+    PAPER_LAMBDA_CM,
+    PAPER_MU,
+    PAPER_R,
+    RetargetParams,
+    TransferParams,
+)
 from rigbuild.retarget.proportion import ProportionMap, fit_proportion_map, transfer_displacements_mesh
-
-PAPER_ALPHA = 0.01
-PAPER_BETA = 0.1
-PAPER_R = 15.0
-PAPER_MU = 0.3
-PAPER_LAMBDA_CM = 0.6
-#: squared-length factor between the paper's cm and our mm
-CM2_TO_MM2 = 100.0
 
 
 # ======================================================================== RBF initial guess (sec. 4.4)
@@ -321,51 +323,6 @@ def cross_expression_laplacian(C: np.ndarray) -> np.ndarray:
 
 # ======================================================================== transfer (sec. 4.6)
 @dataclass
-class TransferParams:
-    """Blendshape-transfer parameters (paper values by default).
-
-    alpha : E_Mesh weight (0.01); beta : E_CEG weight (0.1); r : contrast steepness (15).
-    ceg_reference : ``"character"`` (eq. 13 as written: ``Lambda(dp - ds)``) or ``"rbf"`` (``Lambda(dp - dg)``).
-    epsilon : tiny Tikhonov weight pulling ``dp`` to ``dg``; makes the system positive definite where E_Match
-        has no support (E_Mesh and E_CEG leave a common translation free). Negligible otherwise.
-    match : ``"faithful"`` (eq. 10 as written), ``"fit"`` (the ROM-fit E_Match, see :func:`fit_match_transfer`)
-        or ``"activation"``: the activation-aware E_Match (see
-        :func:`transfer_blendshapes`), ``match_iterations`` alternations.
-    solver : ``"kronecker"`` (:func:`kron_sum_solve`, exact/PCG on the Kronecker-sum structure) or
-        ``"cholmod"`` (sparse Cholesky of the assembled (MK x MK) matrix; same answer, slower).
-    fit_alpha, fit_lambda_cm, fit_mu, fit_frames : the ``"fit"`` match (:func:`fit_match_transfer`): its E_Mesh
-        weight (its E_Match has one residual per frame, not one per shape and frame, so the balance differs
-        from alpha; 0.3 measured: 0.1 fits stylized characters as well but moves the own rig further from its exact guess), the E_Sparse / E_Prior weights of the training-frame activations (the
-        section-5 energy with a sparser lambda: 0.2 for cm, measured) and the frames matched (``"all"``
-        training frames or the ``"keys"`` of sec. 4.2).
-    guess : initial guesses g_k for E_Mesh (and the ``rbf`` baseline). ``"rbf"`` (sec. 4.4 as written:
-        the thin-plate RBF ``s0 -> a0`` evaluated at the displaced markers, :func:`rbf_transfer`) or
-        ``"deformation"`` (the character's whole-mesh blendshapes deformation-transferred onto the
-        character's neutral warped by that RBF into the actor's proportions, sampled at the markers:
-        ``rigbuild.retarget.proportion.transfer_displacements_mesh``; needs the character mesh, so
-        :func:`build_model` computes it).
-
-    Units: E_Match, E_Mesh and E_CEG are all squared marker displacements (the cotangent weights and the
-    CEG Laplacian are dimensionless), so alpha and beta are unit-free: the paper's 0.01 / 0.1 (cm) are the
-    same numbers in mm.
-    """
-
-    alpha: float = PAPER_ALPHA
-    beta: float = PAPER_BETA
-    r: float = PAPER_R
-    ceg_reference: str = "character"
-    epsilon: float = 1e-6
-    match: str = "faithful"
-    match_iterations: int = 2
-    fit_alpha: float = 0.3
-    fit_lambda_cm: float = 0.2
-    fit_mu: float = PAPER_MU
-    fit_frames: str = "all"
-    solver: str = "kronecker"
-    guess: str = "rbf"
-
-
-@dataclass
 class TransferResult:
     """Output of :func:`transfer_blendshapes`. Shapes: K shapes, M markers, F training frames."""
 
@@ -565,18 +522,18 @@ def transfer_blendshapes(
     params : :class:`TransferParams`. uv, contact_pairs : see :func:`marker_triangulation`.
     segment_starts : first frame of each concatenated training sequence (for the key-frame filter).
 
-    ``params.match = "faithful"`` minimizes eq. 4 exactly as written. Measured weak spot (the paper's sec. 6.3
+    ``params.match = "faithful"`` minimizes eq. 4 exactly as written. Its weak spot (the paper's sec. 6.3
     notes it): eq. 10's minimizer is a similarity-weighted *mean* of masked key expressions; every key with a
     positive similarity (partial activations, mixtures, near-neutral frames) pulls ``dp_k`` toward a smaller
     shape, and ``diag(u_k)`` damps the actor's data where the character's shape falls off, so the shapes
-    shrink (median scale 0.39 on the synthetic ICT actor). ``match = "activation"`` is one offered option: the
+    shrink. ``match = "activation"`` is one offered option: the
     activation of every shape in every key is solved jointly with the shapes (alternating, starting from the
     RBF guesses; :func:`key_activations`) and the match term becomes
     ``(1/F) sum_f sum_k c~_kf |diag(u_k) (h_kf dp_k - r_kf)|^2`` - the key expression minus what the other
     shapes explain, compared at the shape's activation, with the soft mask as a residual weight. The
     correlations, trust, contrast enhancement, key extraction, E_Mesh and E_CEG are unchanged.
     ``match = "fit"`` (:func:`fit_match_transfer`) matches all training frames with the whole blendshape model
-    at sparse activations solved with the section-5 energy; it measured best (benchmarks/out/retarget_ribera.json).
+    at sparse activations solved with the section-5 energy.
     ``prior`` (K, K): the E_Prior form for those activations (default none); ``dg``: initial guesses g_k
     (default :func:`rbf_transfer`).
 
@@ -723,37 +680,6 @@ def head_scale(a0: np.ndarray, s0: np.ndarray) -> float:
     ra = np.sqrt(((a0 - a0.mean(0)) ** 2).sum(1).mean())
     rs = np.sqrt(((s0 - s0.mean(0)) ** 2).sum(1).mean())
     return float(ra / rs) if rs > 0 else 1.0
-
-
-@dataclass
-class RetargetParams:
-    """Retargeting parameters in the paper's units; converted to mm internally.
-
-    mu : E_Prior weight (paper 0.3). lambda_cm : E_Sparse weight for markers in cm (paper 0.6); in mm the
-    solver uses ``lambda_cm * 100``. bounds : (lo, hi) weight bounds, either may be None (no bound).
-    irls_iterations, irls_eps : IRLS for the L1 term (``|w| ~ w^2 / |w_prev|``). active_set_passes : passes of
-    the bound-constrained solve. refine_rigid : extra rounds of rigid head-motion removal against the fitted
-    expression.
-    rigid : ``"joint"`` (default): E_Fit is minimized jointly over the weights and a residual small rigid
-        motion of the stabilized frame (6 unbounded, unpenalized unknowns, eliminated exactly by a Schur
-        complement, see :class:`RiberaRetargeter`); ``"fixed"``: the stabilized frame is taken as is.
-        Measured on the synthetic ICT actor with its true marker blendshapes: a rigid fit to the neutral
-        absorbs part of every expression (jawOpen reads partly as a head tilt), which alone caps the
-        mean correlation at 0.91 on clean, motion-free data; the joint fit recovers it exactly.
-    """
-
-    mu: float = PAPER_MU
-    lambda_cm: float = PAPER_LAMBDA_CM
-    bounds: tuple[float | None, float | None] | None = None
-    irls_iterations: int = 8
-    irls_eps: float = 1e-3
-    active_set_passes: int = 6
-    refine_rigid: int = 1
-    rigid: str = "joint"
-
-    @property
-    def lambda_mm(self) -> float:
-        return self.lambda_cm * CM2_TO_MM2
 
 
 def _masked_system(A: np.ndarray, free: np.ndarray) -> np.ndarray:
@@ -1058,8 +984,8 @@ class RiberaModel:
     """Everything needed to retarget performances of one actor onto one character.
 
     a0 : (M, 3) actor neutral (mm); dp : (K, M, 3) actor blendshapes used in E_Fit; Q : (K, K) prior;
-    rigidity : (M,) stabilization weights; shape_names : K names; transfer : the transfer result (or None
-    for the parallel-parametrization method).
+    rigidity : (M,) stabilization weights; shape_names : K names; transfer : the transfer result (None for
+    the ``rbf`` and ``deformation`` baselines).
     """
 
     a0: np.ndarray
@@ -1090,7 +1016,8 @@ class RiberaModel:
         return w
 
 
-METHODS = ("ribera", "ribera_activation", "ribera_fit", "rbf", "deformation", "parallel")
+#: the methods :func:`build_model` prepares (the registry: :mod:`rigbuild.retarget.methods`)
+METHODS = tuple(RIBERA_METHODS)
 
 
 def deformation_guesses(character: Rig, vertex_ids: np.ndarray, a0: np.ndarray, workers: int = 1) -> np.ndarray:
@@ -1118,7 +1045,6 @@ def build_model(
     transfer_params: TransferParams | None = None,
     retarget_params: RetargetParams | None = None,
     segment_starts: np.ndarray | None = None,
-    actor_blendshapes: np.ndarray | None = None,
     uv: np.ndarray | None = None,
     contact_pairs: np.ndarray | None = None,
     workers: int = 1,
@@ -1131,14 +1057,12 @@ def build_model(
     vertex_ids : (M,) character vertex of each actor marker (see ``common.map_markers_to_vertices``).
     a0 : (M, 3) actor neutral markers (mm).
     training : (F, M, 3) the actor's training (ROM) markers (mm, NaN gaps, head motion allowed); unused by
-        ``"parallel"``.
+        the ``"rbf"`` and ``"deformation"`` baselines.
     method : ``"ribera"`` (section 4 transfer as written), ``"ribera_activation"`` (the activation-aware
         E_Match option, see :func:`transfer_blendshapes`), ``"ribera_fit"`` (the ROM-fit E_Match option,
         :func:`fit_match_transfer`),
         ``"rbf"`` (baseline: the thin-plate RBF guesses ``g_k`` used directly), ``"deformation"`` (the
-        deformation-transfer guesses of :func:`deformation_guesses` used directly), ``"parallel"`` (parallel
-        parametrization: ``actor_blendshapes`` (K, M, 3) from the actor's personalized rig, which shares the
-        character's shape names, used directly).
+        deformation-transfer guesses of :func:`deformation_guesses` used directly).
     segment_starts : first frame of each concatenated training sequence.
     transfer_params.guess : g_k of ``"ribera"`` / ``"ribera_activation"`` (``"rbf"`` as in the paper, or
         ``"deformation"``).
@@ -1159,32 +1083,22 @@ def build_model(
     scale = head_scale(a0, s0)
     Q = prior_matrix(ch.neutral, ch.deltas, ch.faces, scale)
     transfer = None
-    if method == "parallel":
-        if actor_blendshapes is None:
-            raise InputError("method 'parallel' needs the actor's personalized sparse blendshapes",
-                             fix="pass actor_blendshapes = personalized_rig.deltas[:, marker_vertices] (same shape names)")
-        dp = np.asarray(actor_blendshapes, float)
-        if dp.shape != ds.shape:
-            raise InputError(f"actor blendshapes {dp.shape} do not match the character's sparse shapes {ds.shape}",
-                             fix="subset the personalized rig to the character's shape names and marker vertices")
-        rigidity = rigidity_weights(dp)
+    if tp.guess not in ("rbf", "deformation"):
+        raise InputError(f"unknown initial guess '{tp.guess}'", fix="use rbf or deformation")
+    use_dt = method == "deformation" or (method != "rbf" and tp.guess == "deformation")
+    dg = deformation_guesses(ch, vertex_ids, a0, workers) if use_dt else rbf_transfer(s0, ds, a0)
+    rigidity = rigidity_weights(dg)
+    if method in ("rbf", "deformation"):
+        dp = dg
     else:
-        if tp.guess not in ("rbf", "deformation"):
-            raise InputError(f"unknown initial guess '{tp.guess}'", fix="use rbf or deformation")
-        use_dt = method == "deformation" or (method != "rbf" and tp.guess == "deformation")
-        dg = deformation_guesses(ch, vertex_ids, a0, workers) if use_dt else rbf_transfer(s0, ds, a0)
-        rigidity = rigidity_weights(dg)
-        if method in ("rbf", "deformation"):
-            dp = dg
-        else:
-            if training is None:
-                raise InputError(f"method '{method}' needs the actor's training (ROM) markers")
-            da = training_displacements(np.asarray(training, float), a0, rigidity)
-            if method == "ribera_activation":
-                tp = TransferParams(**{**tp.__dict__, "match": "activation"})
-            if method == "ribera_fit":
-                tp = TransferParams(**{**tp.__dict__, "match": "fit"})
-            transfer = transfer_blendshapes(s0, ds, a0, da, tp, uv=uv, contact_pairs=contact_pairs,
-                                            segment_starts=segment_starts, dg=dg, prior=Q)
-            dp = transfer.dp
+        if training is None:
+            raise InputError(f"method '{method}' needs the actor's training (ROM) markers")
+        da = training_displacements(np.asarray(training, float), a0, rigidity)
+        if method == "ribera_activation":
+            tp = TransferParams(**{**tp.__dict__, "match": "activation"})
+        if method == "ribera_fit":
+            tp = TransferParams(**{**tp.__dict__, "match": "fit"})
+        transfer = transfer_blendshapes(s0, ds, a0, da, tp, uv=uv, contact_pairs=contact_pairs,
+                                        segment_starts=segment_starts, dg=dg, prior=Q)
+        dp = transfer.dp
     return RiberaModel(a0, dp, Q, rigidity, list(ch.shape_names), rp, transfer)

@@ -1,7 +1,7 @@
 """One retargeting job: an actor's training markers + a performance take -> weight curves on a character.
 
-Used by ``scripts/retarget.py`` (one Snakemake job per (session, performance, character, method)), the tests
-and the benchmark. I/O stays in the script; this module takes arrays and rigs.
+Used by :func:`rigbuild.retarget.stage.run_ribera` (one Snakemake job per (session, performance, character,
+method)), the tests and the benchmark. File I/O stays in the stage runner; this module takes arrays and rigs.
 """
 
 from __future__ import annotations
@@ -115,7 +115,6 @@ def retarget_performance(
     transfer_params: TransferParams | None = None,
     retarget_params: RetargetParams | None = None,
     contact_pairs: np.ndarray | None = None,
-    actor_blendshapes: np.ndarray | None = None,
     allow_empty_frames: bool = True,
     performance_path: str | os.PathLike | None = None,
     map_path: str | os.PathLike | None = None,
@@ -128,7 +127,6 @@ def retarget_performance(
     training : :class:`TrainingSet`; performance (F, M', 3) mm with NaN gaps and its marker names;
     character : rig (mm); map_names / map_vertices : the character's marker map (marker name -> vertex);
     contact_pairs : (C, 2) indices into ``map_names`` (converted to the training order here).
-    actor_blendshapes : (K, M, 3) in training marker order, for ``method="parallel"``.
     Frames with fewer than 3 visible markers raise unless ``allow_empty_frames`` (weights interpolated).
     workers : processes for the transfer's deformation-transfer guesses (the job's threads).
     marker_lowpass_hz, fps : optional zero-phase low-pass of the performance markers (-3 dB frequency;
@@ -147,7 +145,7 @@ def retarget_performance(
     ok = check_frames(perf, what="performance", path=performance_path, allow_empty=allow_empty_frames)
     check_frames(training.markers, what="training sequence", allow_empty=True)
     model = build_model(character, vids, training.neutral, training.markers, method, transfer_params,
-                        retarget_params, training.segment_starts, actor_blendshapes, contact_pairs=pairs,
+                        retarget_params, training.segment_starts, contact_pairs=pairs,
                         workers=workers)
     t1 = time.perf_counter()
     w = np.zeros((perf.shape[0], model.dp.shape[0]))

@@ -34,8 +34,7 @@ SYNTH_DEFAULTS: dict[str, Any] = {
     "paint_markers": True,
     # spacing (mm) of the registration dots painted between the markers (rigbuild.dots); None: markers only
     "dot_stencil_mm": None,
-    # MSAA doubles the render cost; measured: ChArUco corner RMS identical with and without it
-    # (0.089 px at 1280x960) and face renders differ by 48.8 dB PSNR.
+    # multisample anti-aliasing of the board and face renders (why off: docs/decisions.md)
     "msaa": False,
     "calib_poses": 20,
     "board": {"type": "charuco", "squares_x": 7, "squares_y": 5, "square_size_mm": 24.0,
@@ -123,18 +122,8 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
     The folder is built under a temporary name and renamed at the end, so an interrupted run
     leaves no half-written session.
     """
-    from rigbuild.io.cameras import write_cameras
-    from rigbuild.io.markers import write_markers_c3d
-    from rigbuild.io.rigs import load_rig, write_rig_npz
-    from rigbuild.io.atomic import save_npz, write_json
-    from rigbuild.paths import ict_dir
-    from rigbuild.render import render_mesh
-    from rigbuild.render.board import render_board
-    from rigbuild.render.mesh import TexturedMesh, speckle_texture
+    from rigbuild.io.atomic import write_json
     from rigbuild.session import session_from_dict, write_session
-    from rigbuild.synth.actor import make_actor_rig
-    from rigbuild.synth.motion import make_head_motion, make_performance_weights, make_rom_weights, markers_from_rig
-    from rigbuild.synth.rig_layout import make_board_poses, make_camera_rig
 
     say = progress or (lambda msg: None)
     p = synth_params(synthetic)
@@ -145,44 +134,83 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
         shutil.rmtree(tmp_dir)
     tmp_dir.mkdir(parents=True)
     spec = session_from_dict(plan, tmp_dir)
-    seed = int(p["seed"])
+    gt = tmp_dir / "ground_truth"
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
-    # ---------------------------------------------------------------- rigs
+    actor, dot_vertices = _write_rigs(gt, spec, p)
+    timings["rigs_s"] = time.perf_counter() - t0
+    face_centre = actor.neutral[actor.face_vertices].mean(0)
+    cameras = _write_cameras(gt, spec, p, name, face_centre)
+    t1 = time.perf_counter()
+    _render_calibration(tmp_dir, gt, spec, p, cameras, face_centre, say)
+    timings["calib_images_s"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    n_images = _render_rom(gt, spec, p, actor, cameras, face_centre, dot_vertices, say)
+    timings["rom_images_s"] = time.perf_counter() - t2
+    timings["rom_images"] = n_images
+    _write_performances(tmp_dir, gt, spec, p, actor, face_centre)
+
+    write_session(plan, tmp_dir)
+    timings["total_s"] = time.perf_counter() - t0
+    write_json(gt / "generation.json", {"timings": timings, "params": p})
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    os.replace(tmp_dir, out_dir)
+    return timings
+
+
+def _write_rigs(gt: Path, spec, p: dict):
+    """Load the template, make the actor and write both rigs (and actor_info.json) under ``gt``.
+
+    Returns the actor :class:`~rigbuild.rig.Rig` and the (D,) vertex ids of the painted dots: laid out on the
+    template (the stencil) and painted at the same vertices of the actor.
+    """
+    from rigbuild.dots import painted_dot_vertices
+    from rigbuild.io.atomic import write_json
+    from rigbuild.io.rigs import load_rig, write_rig_npz
+    from rigbuild.paths import ict_dir
+    from rigbuild.synth.actor import make_actor_rig
+
     template = load_rig(p["template_rig"])
     if template.marker_vertices.size == 0:
         raise InputError(f"template rig '{p['template_rig']}' has no marker set", fix="add markers to the rig")
-    from rigbuild.dots import painted_dot_vertices
-
-    # the dots are laid out on the template (the stencil) and painted at the same vertices of the actor
     dot_vertices = painted_dot_vertices(template, spec.dot_stencil_mm)
     identity_folder = ict_dir() if p["template_rig"] == "ict" else None
-    actor, actor_info = make_actor_rig(template, seed=seed, identity_folder=identity_folder,
+    actor, actor_info = make_actor_rig(template, seed=int(p["seed"]), identity_folder=identity_folder,
                                        intensity_range=tuple(p["actor"]["intensity_range"]),
                                        asymmetry=p["actor"]["asymmetry"], crosstalk=p["actor"]["crosstalk"],
                                        warp=p["actor"]["warp"])
-    gt = tmp_dir / "ground_truth"
     write_rig_npz(gt / "actor_rig.npz", actor)
     write_rig_npz(gt / "template_rig.npz", template)
     write_json(gt / "actor_info.json", actor_info)
-    timings["rigs_s"] = time.perf_counter() - t0
+    return actor, dot_vertices
 
-    # ------------------------------------------------------------- cameras
-    W, H = spec.width, spec.height
-    face_centre = actor.neutral[actor.face_vertices].mean(0)
-    cameras = make_camera_rig(n_cameras=len(spec.cameras), width=W, height=H,
+
+def _write_cameras(gt: Path, spec, p: dict, name: str, face_centre: np.ndarray) -> list:
+    """The synthetic camera rig aimed at ``face_centre`` (3,) mm, written to ``gt/cameras.json``."""
+    from rigbuild.io.cameras import write_cameras
+    from rigbuild.synth.rig_layout import make_camera_rig
+
+    cameras = make_camera_rig(n_cameras=len(spec.cameras), width=spec.width, height=spec.height,
                               distance_mm=float(p["camera_distance_mm"]), arc_deg=tuple(p["camera_arc_deg"]),
                               rows=int(p["camera_rows"]), target=face_centre,
-                              distortion_scale=float(p["distortion_scale"]), seed=seed)
+                              distortion_scale=float(p["distortion_scale"]), seed=int(p["seed"]))
     write_cameras(gt / "cameras.json", cameras, session=name)
+    return cameras
 
-    # --------------------------------------------------------- calibration
-    t1 = time.perf_counter()
+
+def _render_calibration(tmp_dir: Path, gt: Path, spec, p: dict, cameras: list, face_centre: np.ndarray,
+                        say: Callable[[str], None]) -> None:
+    """Render ``calib/<cam>/<n>.png`` for random board poses; write the poses and their visibility."""
+    from rigbuild.io.atomic import save_npz, write_json
+    from rigbuild.progress import progress as progress_bar
+    from rigbuild.render.board import render_board
+    from rigbuild.synth.rig_layout import make_board_poses
+
+    seed = int(p["seed"])
     poses, seen_by = make_board_poses(cameras, spec.board, n_poses=int(p["calib_poses"]), seed=seed + 1,
                                       center=face_centre)
-    from rigbuild.progress import progress as progress_bar
-
     for cam in progress_bar(cameras, "calibration images", unit="camera"):
         for n, (Rb, tb) in enumerate(poses):
             img = render_board(cam, spec.board, Rb, tb, noise_sigma=float(p["noise_sigma"]), msaa=bool(p["msaa"]),
@@ -191,11 +219,27 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
     say(f"calibration images: {len(cameras)} cameras x {len(poses)} poses")
     save_npz(gt / "board_poses.npz", R=np.array([r for r, _ in poses]), t=np.array([t for _, t in poses]))
     write_json(gt / "board_visibility.json", {"seen_fully_by": seen_by})
-    timings["calib_images_s"] = time.perf_counter() - t1
 
-    # ----------------------------------------------------------------- ROM
-    t2 = time.perf_counter()
-    texture = speckle_texture(2048 if W >= 1000 else 1024, seed=seed)
+
+def _rigid_about(face_centre: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """World translations (F, 3) of a rigid motion about the face centre: x' = R (x - c) + c + t = R x + t_world."""
+    return face_centre[None] - np.einsum("fij,j->fi", R, face_centre) + t
+
+
+def _render_rom(gt: Path, spec, p: dict, actor, cameras: list, face_centre: np.ndarray, dot_vertices: np.ndarray,
+                say: Callable[[str], None]) -> int:
+    """Render every ROM sequence (``rom/<seq>/<cam>/<frame>.png``) and write ``gt/rom/<seq>.npz``.
+
+    Returns the number of images rendered.
+    """
+    from rigbuild.io.atomic import save_npz
+    from rigbuild.progress import progress as progress_bar
+    from rigbuild.render import render_mesh
+    from rigbuild.render.mesh import TexturedMesh, speckle_texture
+    from rigbuild.synth.motion import make_head_motion, make_rom_weights
+
+    seed = int(p["seed"])
+    texture = speckle_texture(2048 if spec.width >= 1000 else 1024, seed=seed)
     rom_cfg = p["rom"]
     seqs = make_rom_weights(actor.shape_names, len(spec.rom), int(rom_cfg["frames_per_sequence"]),
                             seed=seed + 2, coverage=int(rom_cfg["coverage"]),
@@ -205,8 +249,7 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
         R, t = make_head_motion(Wseq.shape[0], seed=seed + 100 + s,
                                 max_rotation_deg=float(rom_cfg["max_rotation_deg"]),
                                 max_translation_mm=float(rom_cfg["max_translation_mm"]))
-        # rigid motion about the face centre: x' = R (x - c) + c + t  ->  R x + (c - R c + t)
-        t_world = face_centre[None] - np.einsum("fij,j->fi", R, face_centre) + t
+        t_world = _rigid_about(face_centre, R, t)
         verts = actor.evaluate(Wseq)
         verts = np.einsum("fij,fvj->fvi", R, verts) + t_world[:, None, :]
         for i, frame in enumerate(seq.frames):
@@ -221,17 +264,23 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
                  rotation=R.astype(np.float32), translation=t_world.astype(np.float32),
                  shape_names=np.asarray(actor.shape_names), frames=np.asarray(seq.frames))
         say(f"ROM {seq.name}: {len(seq.frames)} frames x {len(cameras)} cameras")
-    timings["rom_images_s"] = time.perf_counter() - t2
-    timings["rom_images"] = n_images
+    return n_images
 
-    # --------------------------------------------------------- performance
+
+def _write_performances(tmp_dir: Path, gt: Path, spec, p: dict, actor, face_centre: np.ndarray) -> None:
+    """Write each performance's noisy markers (``performances/<name>.c3d``) and its ground truth npz."""
+    from rigbuild.io.atomic import save_npz
+    from rigbuild.io.markers import write_markers_c3d
+    from rigbuild.synth.motion import make_head_motion, make_performance_weights, markers_from_rig
+
+    seed = int(p["seed"])
     pc = p["performance"]
     fps = float(pc["fps"])
     n_frames = int(round(float(pc["duration_s"]) * fps))
     for i, perf in enumerate(spec.performances):
         Wp = make_performance_weights(actor.shape_names, n_frames, fps, seed=seed + 500 + i)
         R, t = make_head_motion(n_frames, seed=seed + 600 + i, max_rotation_deg=4.0, max_translation_mm=6.0)
-        t_world = face_centre[None] - np.einsum("fij,j->fi", R, face_centre) + t
+        t_world = _rigid_about(face_centre, R, t)
         clean = markers_from_rig(actor, Wp, R, t_world)
         noisy = markers_from_rig(actor, Wp, R, t_world, noise_mm=float(pc["noise_mm"]),
                                  gap_fraction=float(pc["gap_fraction"]), seed=seed + 700 + i)
@@ -240,10 +289,3 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
                  shape_names=np.asarray(actor.shape_names), markers=clean.astype(np.float32),
                  marker_vertices=actor.marker_vertices, marker_names=np.asarray(actor.marker_names),
                  rotation=R.astype(np.float32), translation=t_world.astype(np.float32), fps=np.float64(fps))
-    write_session(plan, tmp_dir)
-    timings["total_s"] = time.perf_counter() - t0
-    write_json(gt / "generation.json", {"timings": timings, "params": p})
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    os.replace(tmp_dir, out_dir)
-    return timings

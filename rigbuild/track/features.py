@@ -8,28 +8,11 @@ components of pixels much darker than their neighbourhood and nearly grey (skin 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 
 from rigbuild.camera import Camera
-
-
-@dataclass
-class DotParams:
-    """Dot detector thresholds: a pixel is a dot pixel when its brightest channel is below ``darkness``
-    times the local background (max filter over ``background_px``) and its red-minus-blue is below
-    ``chroma`` times the background; components with area in [min_area, max_area] px and fill ratio
-    (area / bounding-box area) >= ``min_fill`` are dots."""
-
-    darkness: float = 0.35
-    chroma: float = 0.12
-    background_px: int = 15
-    blur_sigma: float = 1.0
-    min_area: int = 3
-    max_area: int = 400
-    min_fill: float = 0.35
+from rigbuild.track.params import DotParams
 
 
 def detect_dots(image_rgb: np.ndarray, params: DotParams | None = None, mask: np.ndarray | None = None

@@ -9,8 +9,6 @@ weights each match. Matches are taken on a regular grid of source pixels inside 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 
@@ -25,24 +23,7 @@ from rigbuild.track.matches import (
     lift_matches,
     map_views,
 )
-
-
-@dataclass
-class FlowParams:
-    """grid_px: match spacing (relative to a 1280-px-wide image); preset: DIS preset name (ultrafast,
-    fast, medium; medium measured better than fast on the ICT tier's rom00: mean 0.322 vs 0.339 mm, end
-    0.296 vs 0.307 mm, at the same time per frame; a 5-px grid or a second flow round did not help);
-    fb_sigma_px: forward-backward error scale of the weights; max_fb_px: rejection;
-    motion_step: motion-field (guide) sampling step in px; scale: image scale of the residual flow."""
-
-    grid_px: float = 8.0
-    preset: str = "medium"
-    fb_sigma_px: float = 0.5
-    max_fb_px: float = 1.5
-    motion_step: int = 4
-    scale: float = 1.0
-    patch_stride: int = 4
-
+from rigbuild.track.params import FlowParams
 
 _PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
             "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}

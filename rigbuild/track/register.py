@@ -19,6 +19,7 @@ No hand-placed points: everything derives from the dot detections and the scan.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -29,6 +30,7 @@ from rigbuild.geometry.rigid import apply_rigid, fit_similarity
 from rigbuild.rig import Rig
 from rigbuild.track.laplacian import LaplacianSolver, barycentric_matrix
 from rigbuild.track.mesh import TrackingMesh, build_tracking_mesh
+from rigbuild.track.params import RegistrationParams
 
 
 @dataclass
@@ -65,7 +67,7 @@ def require_markers(template: Rig) -> None:
         raise InputError(
             f"template rig '{template.name}' defines {template.marker_vertices.size} marker vertices; tracking "
             "needs at least 4 face features (the painted dots at the rig's marker vertices)",
-            fix="give the template a marker set (rig.json 'markers', rigbuild/data/markers/<rig>.json) or use a rig "
+            fix="give the template a marker set (rig.json 'markers', rigbuild/assets/marker_sets/<rig>.json) or use a rig "
                 "whose markers are defined",
         )
 
@@ -290,58 +292,134 @@ def ray_targets(points: np.ndarray, origin: np.ndarray, direction: np.ndarray) -
     return origin + s[:, None] * direction
 
 
+class _DotTerms(NamedTuple):
+    """The dot and ray constraints of one labeling: ``has_dot`` (D,) which painted dots are constrained;
+    dot_tri (K,), dot_bary (K, 3), dot_targets (K, 3) mm; the rays' tracking-mesh vertices r_local (Q,),
+    their r_tri (Q,), r_bary (Q, 3), r_origin (Q, 3) mm and unit r_dir (Q, 3) (None without rays)."""
+
+    has_dot: np.ndarray
+    dot_tri: np.ndarray
+    dot_bary: np.ndarray
+    dot_targets: np.ndarray
+    r_local: np.ndarray
+    r_tri: np.ndarray | None
+    r_bary: np.ndarray | None
+    r_origin: np.ndarray | None
+    r_dir: np.ndarray | None
+
+
+def _dot_terms(labels: np.ndarray, dots: np.ndarray, rays: RayObservations | None, mk_local: np.ndarray,
+               mesh: TrackingMesh, ray_labels_are_dots: bool) -> _DotTerms:
+    """Dot and ray constraints of a labeling (labels (D,): the dot index of each painted dot vertex or -1;
+    mk_local (D,): their tracking-mesh ids, -1 off the mesh)."""
+    has_dot = (labels >= 0) & (mk_local >= 0)
+    dot_tri, dot_bary = mesh.vertex_points(mk_local[has_dot])
+    ray = (np.zeros(0, dtype=np.int64),) + (None,) * 4
+    if rays is not None and rays.marker.size:
+        if ray_labels_are_dots:
+            dot_to_marker = np.full(dots.shape[0], -1, dtype=np.int64)
+            dot_to_marker[labels[labels >= 0]] = np.flatnonzero(labels >= 0)
+            r_marker = dot_to_marker[rays.marker]
+        else:
+            r_marker = np.asarray(rays.marker, dtype=np.int64)
+        r_ok = (r_marker >= 0)
+        r_ok[r_ok] &= mk_local[r_marker[r_ok]] >= 0
+        r_local = mk_local[r_marker[r_ok]]
+        ray = (r_local,) + mesh.vertex_points(r_local) + (rays.origin[r_ok], rays.direction[r_ok])
+    return _DotTerms(has_dot, dot_tri, dot_bary, dots[labels[has_dot]], *ray)
+
+
+def _landmark_alignment(template: Rig, dots: np.ndarray, dot_vertices: np.ndarray, affine: bool
+                        ) -> tuple[np.ndarray, tuple[float, np.ndarray, np.ndarray], np.ndarray]:
+    """Label the dots and place the template on them: labels (D,), the similarity (s, R, t) and the
+    aligned template neutral (V, 3) mm (similarity, then the landmark-driven affine refinement when
+    ``affine``: it captures anisotropic proportions)."""
+    labels, (s, R, t), _ = label_dots(template.neutral[dot_vertices], dots)
+    aligned_full = apply_rigid(template.neutral, R, t, s)
+    if affine:
+        lab = labels >= 0
+        A, b = fit_affine(template.neutral[dot_vertices][lab], dots[labels[lab]])
+        aligned_full = template.neutral @ A.T + b
+    return labels, (s, R, t), aligned_full
+
+
+def _dot_rms(p: np.ndarray, mk_local: np.ndarray, terms: _DotTerms) -> float:
+    """RMS (mm) of the constrained painted dot vertices of ``p`` (T, 3) to their dots."""
+    return float(np.sqrt(np.mean(np.sum((p[mk_local[terms.has_dot]] - terms.dot_targets) ** 2, 1))))
+
+
+def _nonrigid_step(p: np.ndarray, it: int, params: RegistrationParams, solver: LaplacianSolver,
+                   mesh: TrackingMesh, tree: cKDTree, scan_points: np.ndarray, scan_normals: np.ndarray,
+                   terms: _DotTerms, mk_local: np.ndarray, depth_views: list | None) -> tuple[np.ndarray, dict]:
+    """One non-rigid iteration ``it`` from the tracking-mesh vertices ``p`` (T, 3) mm: closest points on the
+    scan (lambda and gate from their schedules), the dot and ray terms, one Laplacian solve. Returns the new
+    vertices and the iteration's history row."""
+    from rigbuild.track.laplacian import vertex_normals
+
+    face = mesh.face_local
+    lam_schedule, gate_schedule_mm = params.lam_schedule, params.gate_schedule_mm
+    a = it / max(params.iterations - 1, 1)
+    lam = lam_schedule[0] * (lam_schedule[1] / lam_schedule[0]) ** a
+    gate = gate_schedule_mm[0] * (gate_schedule_mm[1] / gate_schedule_mm[0]) ** a
+    nrm = vertex_normals(p, mesh.faces)
+    tgt, w, dist = closest_point_targets(p[face], nrm[face], tree, scan_points, scan_normals, gate,
+                                         params.max_normal_angle_deg)
+    if depth_views:
+        w = w * (observed_views(p[face], nrm[face], depth_views, max(gate, params.visibility_mm)) > 0)
+    cp_tri, cp_bary = mesh.vertex_points(face)
+    tris = [cp_tri, terms.dot_tri]
+    barys = [cp_bary, terms.dot_bary]
+    tgts = [tgt, terms.dot_targets]
+    ws = [w, np.full(terms.dot_tri.size, params.dot_weight)]
+    if terms.r_local.size:
+        tris.append(terms.r_tri)
+        barys.append(terms.r_bary)
+        tgts.append(ray_targets(p[terms.r_local], terms.r_origin, terms.r_dir))
+        ws.append(np.full(terms.r_local.size, params.ray_weight))
+    delta = solver.rotated_delta(p) if params.rotate_delta else solver.delta_rest
+    if params.point_to_plane:
+        _, j = tree.query(p[face])
+        p = solve_point_to_plane(solver, delta, np.concatenate(tris[1:]), np.concatenate(barys[1:]),
+                                 np.concatenate(tgts[1:]), np.concatenate(ws[1:]), face[w > 0], tgt[w > 0],
+                                 scan_normals[j[w > 0]], w[w > 0], lam, prior=p)
+    else:
+        p, rep = solver.solve(np.concatenate(tris), np.concatenate(barys), np.concatenate(tgts),
+                              np.concatenate(ws), lam, delta=delta, prior=p)
+    valid = w > 0
+    row = {"iteration": it, "lambda": lam, "gate_mm": gate,
+           "scan_median_mm": float(np.median(dist[valid])) if valid.any() else float("nan"),
+           "closest_points": int(valid.sum()), "dot_rms_mm": _dot_rms(p, mk_local, terms)}
+    return p, row
+
+
 def register_neutral(
     template: Rig,
     scan_points: np.ndarray,
     scan_normals: np.ndarray,
     dots: np.ndarray,
     rays: RayObservations | None = None,
-    ray_labels_are_dots: bool = True,
-    iterations: int = 12,
-    lam_schedule: tuple[float, float] = (0.02, 2.0),
-    gate_schedule_mm: tuple[float, float] = (8.0, 2.0),
-    dot_weight: float = 10.0,
-    ray_weight: float = 1.0,
+    params: RegistrationParams | None = None,
+    *,
     mesh: TrackingMesh | None = None,
-    affine: bool = True,
-    point_to_plane: bool = True,
-    rotate_delta: bool = False,
     depth_views: list | None = None,
-    visibility_mm: float = 2.0,
-    relabel_at: tuple[int, ...] = (4, 8),
-    relabel_gate_mm: float = 3.0,
     dot_vertices: np.ndarray | None = None,
-    max_normal_angle_deg: float = 30.0,
 ) -> NeutralRegistration:
     """Register the template's neutral to the actor's neutral scan.
 
     template : Rig in mm with marker vertices (the painted dots); scan_points, scan_normals (S, 3): the
     reconstructed neutral surface (mm, unit normals, e.g. the fused mesh's vertices); dots (D, 3) mm:
     triangulated dot centres (unlabeled); rays : 2-D dot detections as rays; their ``marker`` field holds a
-    dot index (``ray_labels_are_dots``) that is converted to a marker index through the labeling.
-    iterations : non-rigid iterations; lam_schedule : data weight lambda from first to last iteration
-    (geometric); gate_schedule_mm : closest-point distance gate from first to last iteration.
-    affine : after the similarity, refine the landmark alignment to an affine map (12 parameters,
-    least squares on the labeled dots) before the non-rigid stage.
-    point_to_plane : coupled point-to-plane closest-point term (default) instead of point targets on the
-    tangent planes (which hold vertices where the previous iterate put them: measured 2.1 mm vs 0.50 mm
-    face-region error on the ICT actor, benchmarks/bench_track.py).
-    rotate_delta : rotate the Laplacian coordinates per vertex (ARAP-like); the linear (unrotated) form
-    interpolates the identity change better (0.79 vs 0.89 mm measured).
+    dot index (``params.ray_labels_are_dots``) that is converted to a marker index through the labeling.
+    params : :class:`~rigbuild.track.params.RegistrationParams` (schedules, weights, options; default the
+    defaults). mesh : the template's tracking mesh (built when None).
     depth_views : (camera, depth map) pairs; when given, the closest-point term is applied only to vertices
-    observed in at least one view within ``max(gate, visibility_mm)`` (unobserved vertices - mouth interior,
-    nostrils, behind the ears - follow the Laplacian instead of snapping onto a nearby visible surface).
-
-    relabel_at : iterations before which the dots are labeled again from the current mesh's markers
-        (:func:`relabel_dots`, gate ``relabel_gate_mm``); () keeps the first labeling.
+    observed in at least one view (:func:`observed_views`, ``params.visibility_mm``).
     dot_vertices : (D,) template vertices of the painted dots (:func:`rigbuild.dots.painted_dot_vertices`:
-        the markers and the stencil dots); default: the markers.
-    max_normal_angle_deg : closest points whose scan normal turns further than this from the vertex normal
-        are rejected (a neighbouring surface - the other lid, the eyeball, the inner lip: ICT tier, eye region
-        0.71 -> 0.63 mm at 30 degrees instead of 60, observed face 0.275 -> 0.270).
+    the markers and the stencil dots); default: the markers.
 
     Returns :class:`NeutralRegistration` (vertices in full template topology).
     """
+    params = params or RegistrationParams()
     require_markers(template)
     scan_points = np.asarray(scan_points, dtype=np.float64)
     scan_normals = np.asarray(scan_normals, dtype=np.float64)
@@ -350,88 +428,35 @@ def register_neutral(
                          fix="check the reconstruction of the neutral frame (depth maps / fused mesh)")
     mesh = mesh or build_tracking_mesh(template.neutral, template.faces, template.face_region)
     dot_vertices = template.marker_vertices if dot_vertices is None else np.asarray(dot_vertices, np.int64)
-    labels, (s, R, t), _ = label_dots(template.neutral[dot_vertices], dots)
-    aligned_full = apply_rigid(template.neutral, R, t, s)
-    if affine:  # landmark-driven affine refinement (captures anisotropic proportions)
-        lab = labels >= 0
-        A, b = fit_affine(template.neutral[dot_vertices][lab], dots[labels[lab]])
-        aligned_full = template.neutral @ A.T + b
+    labels, (s, R, t), aligned_full = _landmark_alignment(template, dots, dot_vertices, params.affine)
     rest = mesh.local(aligned_full)
     solver = LaplacianSolver(rest, mesh.faces)
     tree = cKDTree(scan_points)
     mk_local = mesh.full_to_local[dot_vertices]
-
-    def constraints(labels: np.ndarray):
-        """Dot and ray constraints of a labeling: (has_dot, dot tri/bary/targets, ray local/tri/bary/origin/dir)."""
-        has_dot = (labels >= 0) & (mk_local >= 0)
-        dot_tri, dot_bary = mesh.vertex_points(mk_local[has_dot])
-        ray = (np.zeros(0, dtype=np.int64),) + (None,) * 4
-        if rays is not None and rays.marker.size:
-            if ray_labels_are_dots:
-                dot_to_marker = np.full(dots.shape[0], -1, dtype=np.int64)
-                dot_to_marker[labels[labels >= 0]] = np.flatnonzero(labels >= 0)
-                r_marker = dot_to_marker[rays.marker]
-            else:
-                r_marker = np.asarray(rays.marker, dtype=np.int64)
-            r_ok = (r_marker >= 0)
-            r_ok[r_ok] &= mk_local[r_marker[r_ok]] >= 0
-            r_local = mk_local[r_marker[r_ok]]
-            ray = (r_local,) + mesh.vertex_points(r_local) + (rays.origin[r_ok], rays.direction[r_ok])
-        return (has_dot, dot_tri, dot_bary, dots[labels[has_dot]]) + ray
-
-    has_dot, dot_tri, dot_bary, dot_targets, r_local, r_tri, r_bary, r_origin, r_dir = constraints(labels)
-    face = mesh.face_local
+    terms = _dot_terms(labels, dots, rays, mk_local, mesh, params.ray_labels_are_dots)
     p = rest.copy()
     history = []
-    from rigbuild.track.laplacian import vertex_normals
-
-    for it in range(iterations):
-        if it in relabel_at:
+    for it in range(params.iterations):
+        if it in params.relabel_at:
             # the painted dots sit at the markers of the actor's surface: once the mesh has taken the scan's
             # shape its markers are near their dots, so dots the first (affine) labeling could not reach or
             # confused are assigned again, one to one, with a tighter gate
             at = np.where((mk_local >= 0)[:, None], p[np.maximum(mk_local, 0)], np.nan)
-            labels = relabel_dots(at, dots, relabel_gate_mm)
-            has_dot, dot_tri, dot_bary, dot_targets, r_local, r_tri, r_bary, r_origin, r_dir = constraints(labels)
-        a = it / max(iterations - 1, 1)
-        lam = lam_schedule[0] * (lam_schedule[1] / lam_schedule[0]) ** a
-        gate = gate_schedule_mm[0] * (gate_schedule_mm[1] / gate_schedule_mm[0]) ** a
-        nrm = vertex_normals(p, mesh.faces)
-        tgt, w, dist = closest_point_targets(p[face], nrm[face], tree, scan_points, scan_normals, gate,
-                                             max_normal_angle_deg)
-        if depth_views:
-            w = w * (observed_views(p[face], nrm[face], depth_views, max(gate, visibility_mm)) > 0)
-        cp_tri, cp_bary = mesh.vertex_points(face)
-        tris = [cp_tri, dot_tri]
-        barys = [cp_bary, dot_bary]
-        tgts = [tgt, dot_targets]
-        ws = [w, np.full(dot_tri.size, dot_weight)]
-        if r_local.size:
-            tris.append(r_tri)
-            barys.append(r_bary)
-            tgts.append(ray_targets(p[r_local], r_origin, r_dir))
-            ws.append(np.full(r_local.size, ray_weight))
-        delta = solver.rotated_delta(p) if rotate_delta else solver.delta_rest
-        if point_to_plane:
-            _, j = tree.query(p[face])
-            p = solve_point_to_plane(solver, delta, np.concatenate(tris[1:]), np.concatenate(barys[1:]),
-                                     np.concatenate(tgts[1:]), np.concatenate(ws[1:]), face[w > 0], tgt[w > 0],
-                                     scan_normals[j[w > 0]], w[w > 0], lam, prior=p)
-        else:
-            p, rep = solver.solve(np.concatenate(tris), np.concatenate(barys), np.concatenate(tgts),
-                                  np.concatenate(ws), lam, delta=delta, prior=p)
-        valid = w > 0
-        history.append({"iteration": it, "lambda": lam, "gate_mm": gate,
-                        "scan_median_mm": float(np.median(dist[valid])) if valid.any() else float("nan"),
-                        "closest_points": int(valid.sum()),
-                        "dot_rms_mm": float(np.sqrt(np.mean(np.sum((p[mk_local[has_dot]] - dot_targets) ** 2, 1))))})
+            labels = relabel_dots(at, dots, params.relabel_gate_mm)
+            terms = _dot_terms(labels, dots, rays, mk_local, mesh, params.ray_labels_are_dots)
+        p, row = _nonrigid_step(p, it, params, solver, mesh, tree, scan_points, scan_normals, terms, mk_local,
+                                depth_views)
+        history.append(row)
+    from rigbuild.track.laplacian import vertex_normals
+
+    face = mesh.face_local
     nrm = vertex_normals(p, mesh.faces)
-    tgt, w, _ = closest_point_targets(p[face], nrm[face], tree, scan_points, scan_normals, gate_schedule_mm[1])
+    tgt, w, _ = closest_point_targets(p[face], nrm[face], tree, scan_points, scan_normals,
+                                      params.gate_schedule_mm[1])
     dist = np.linalg.norm(tgt - p[face], axis=1)  # point-to-plane distance to the scan
     full = mesh.to_full(p, aligned_full)
-    dot_rms = float(np.sqrt(np.mean(np.sum((p[mk_local[has_dot]] - dot_targets) ** 2, 1))))
     return NeutralRegistration(
         vertices=full, markers=full[template.marker_vertices], similarity=(s, R, t), dot_labels=labels,
         scan_rms_mm=float(np.sqrt(np.mean(dist[w > 0] ** 2))) if np.any(w > 0) else float("nan"),
-        dot_rms_mm=dot_rms, history=history,
+        dot_rms_mm=_dot_rms(p, mk_local, terms), history=history,
     )

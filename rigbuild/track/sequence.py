@@ -7,14 +7,13 @@ and against the neutral anchor frame (drift control); lost tracking is detected 
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from rigbuild.errors import InputError
 from rigbuild.geometry.rigid import apply_rigid, fit_rigid_motion
 from rigbuild.track.features import (
-    DotParams,
     assign_detections,
     cluster_lifted_dots,
     consistent_displacements,
@@ -23,98 +22,14 @@ from rigbuild.track.features import (
     surface_neighbours,
     triangulate,
 )
-from rigbuild.track.flow import FlowParams, flow_matches, points_flow
+from rigbuild.track.flow import flow_matches, points_flow
 from rigbuild.track.laplacian import LaplacianSolver, vertex_normals
 from rigbuild.track.matches import Matches, Source, ViewFrame, concat, map_views
+from rigbuild.track.params import DotParams, TrackParams
 from rigbuild.track.register import RayObservations
-from rigbuild.track.sparse import SparseSchedule, sift_features, sparse_matches
+from rigbuild.track.sparse import sift_features, sparse_matches
 
 log = logging.getLogger(__name__)
-
-LEVELS = ("features", "sparse", "flow")
-
-
-@dataclass
-class TrackParams:
-    """Tracking parameters (``config["params"]["track"]``). Pixel sizes are for a 1280-px-wide image and
-    scale with the image width.
-
-    levels : which levels run (subset of features, sparse, flow, coarse to fine).
-    dot_radius_px : dot assignment radii, one solve per radius (coarse to fine).
-    dot_weight, lam_features : weight of a dot constraint and lambda of the dot-only solves.
-    max_triangulation_rms_px : dots whose multi-view reprojection RMS exceeds it are dropped.
-    sparse : :class:`SparseSchedule`; flow : :class:`FlowParams`; lam_flow : lambda of the flow solves;
-    flow_iterations : flow/solve rounds.
-    anchor : match against the neutral anchor frame too; anchor_weight : relative weight of those matches.
-    lost_residual_mm : a frame is lost when the weighted median constraint residual exceeds it;
-    lost_min_matches : ... or when fewer image matches than this survive (per view on average);
-    lost_min_dot_fraction : ... or when fewer painted dots than this fraction of those found on the anchor
-        (neutral) frame are found (measured on the ICT tier: the frames whose error reached 5-7 mm kept
-        34-38 of 67 dots, every tracked frame under 2.5 mm kept 44 or more).
-    neutral_check_mm : the first frame of a sequence must fit the neutral rigidly within this (90th percentile
-        of the dot residuals, mm).
-    rotation_iterations : Laplacian solves per dot radius, each re-fitting the per-vertex rotations of delta.
-    constant_velocity : predict a frame by constant-velocity extrapolation (default: the previous frame).
-    dot_consistency : a dot assignment whose displacement from the estimate differs from its mesh
-        neighbours' (median of the ``dot_neighbours`` nearest dots along the surface) by more than this
-        fraction of the dot spacing is dropped before the solve (after a large motion - 18 mm in one frame at a
-        jaw-open onset - a coarse radius assigns dots to their neighbours' detections; the solve then follows
-        them with a small residual, so the residual test alone does not see them; ICT tier rom11, jaw-open onset
-        frame: mean error 0.76 -> 0.31 mm, worst vertex 29 -> 3.3 mm with 0.3); 0 disables.
-    dot_flow : predict the dots of the coarse assignment by optical flow from the previous frame's images
-        (:meth:`SequenceTracker.dot_flow_prediction`) instead of the previous mesh; dot_flow_scale : image
-        scale of that flow.
-    workers : threads that share the views of the image levels (SIFT, matching, flow, lifting); the
-        snakemake rule passes its ``threads``.
-    confidence_scale : the per-vertex confidence (:meth:`SequenceTracker.confidence`) reaches 1 - 1/e where
-        the match weight on the vertex is this fraction of the frame's median.
-    """
-
-    levels: tuple[str, ...] = LEVELS
-    dot_radius_px: tuple[float, ...] = (60.0, 20.0, 8.0)
-    dot_weight: float = 2.0
-    lam_features: float = 1.0
-    max_triangulation_rms_px: float = 2.5
-    dots: DotParams = field(default_factory=DotParams)
-    sparse: SparseSchedule = field(default_factory=SparseSchedule)
-    flow: FlowParams = field(default_factory=FlowParams)
-    lam_flow: float = 2.0
-    flow_iterations: int = 1
-    anchor: bool = True
-    anchor_weight: float = 1.0
-    lost_residual_mm: float = 1.0
-    lost_min_matches: int = 30
-    lost_min_dot_fraction: float = 0.6
-    neutral_check_mm: float = 3.0
-    rotation_iterations: int = 2
-    constant_velocity: bool = False
-    workers: int = 1
-    dot_consistency: float = 0.3
-    dot_neighbours: int = 5
-    dot_flow: bool = True
-    dot_flow_scale: float = 0.5
-    confidence_scale: float = 0.5
-
-    @classmethod
-    def from_dict(cls, d: dict | None) -> "TrackParams":
-        d = dict(d or {})
-        p = cls()
-        for k, v in d.items():
-            if k == "dots":
-                p.dots = DotParams(**v)
-            elif k == "sparse":
-                p.sparse = SparseSchedule(**{kk: tuple(vv) if isinstance(vv, list) else vv for kk, vv in v.items()})
-            elif k == "flow":
-                p.flow = FlowParams(**v)
-            elif hasattr(p, k):
-                setattr(p, k, tuple(v) if isinstance(v, list) else v)
-            else:
-                raise InputError(f"unknown tracking parameter '{k}'", path="config params.track",
-                                 fix=f"use one of {sorted(asdict(cls()).keys())}")
-        bad = [lv for lv in p.levels if lv not in LEVELS]
-        if bad or not p.levels:
-            raise InputError(f"unknown tracking levels {bad}", path="config params.track.levels", fix=f"use {LEVELS}")
-        return p
 
 
 # --------------------------------------------------------------------------------------------- dots
@@ -163,7 +78,7 @@ def scan_from_depth(frames: list[ViewFrame], step: int = 2, normal_neighbours: i
     Normals: the PCA of each point's ``normal_neighbours`` nearest points of the merged cloud
     (:func:`rigbuild.geometry.mesh.point_cloud_normals`), oriented towards the camera like the cross product of
     neighbouring lifted pixels; 0 keeps those one-pixel normals (their noise slides the point-to-plane
-    registration along the surface: ICT tier neutral, observed face 0.715 -> 0.567 mm with 40 neighbours)."""
+    registration along the surface)."""
     pts, nrm = [], []
     for f in frames:
         H, W = f.depth.shape
@@ -280,8 +195,8 @@ class SequenceTracker:
 
         The dots' projections under ``estimate`` (the previous frame's mesh) moved by the DIS optical flow
         from the previous image to the current one (:func:`rigbuild.track.flow.points_flow`). A dot that
-        moved further than the coarse assignment radius between frames (a jaw-open onset: 18 mm, about
-        90 px) is otherwise assigned to its neighbour's detection.
+        moved further than the coarse assignment radius between frames (a jaw-open onset) is otherwise
+        assigned to its neighbour's detection.
         """
         pred3 = estimate[self.marker_local]
 
@@ -489,9 +404,7 @@ def match_confidence(ring, faces: np.ndarray, m: Matches, scale: float) -> np.nd
     (quality x barycentric share) landing on the vertex's 1-ring (``ring`` (T, T) 0/1 with the diagonal, e.g.
     the Laplacian's pattern; faces (F, 3)) and the median over the vertices that have any; 0 where none lands.
 
-    ``s`` says how well the images pin the vertex down; measured on the ICT tier (rom05, all frames, the
-    observed face): mean error 0.78 mm where s < 7, 0.37 mm at s 22-44, 0.17 mm above 110 (median 87;
-    Spearman correlation of error and s -0.55). A fixed scale of 1 (before) saturated at 1 everywhere."""
+    ``s`` says how well the images pin the vertex down."""
     T = ring.shape[0]
     if m.n == 0:
         return np.zeros(T)

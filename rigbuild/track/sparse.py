@@ -9,31 +9,12 @@ the descriptor threshold and the data weight lambda grow (:class:`SparseSchedule
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
 from rigbuild.track.matches import Matches, Source, ViewFrame, lift_matches
-
-
-@dataclass
-class SparseSchedule:
-    """Per-round search radius (px, relative to a 1280-px-wide image), descriptor threshold (L2 on
-    OpenCV's SIFT descriptors, ~0-700) and lambda. ``max_features``: the strongest keypoints kept per view
-    (0 = all); SIFT runs on the box around the observed surface only, resized by ``image_scale`` (OpenCV's
-    SIFT doubles its input for the first octave, so 0.5 detects at the image's own resolution; 1 costs 4x:
-    0.32 s per 1280x960 view on one core, a quarter of a frame's work)."""
-
-    radius_px: tuple[float, ...] = (24.0, 12.0, 6.0)
-    descriptor_threshold: tuple[float, ...] = (180.0, 230.0, 280.0)
-    lam: tuple[float, ...] = (1.0, 2.0, 4.0)
-    ratio: float = 0.85
-    contrast_threshold: float = 0.01
-    edge_threshold: float = 12.0
-    max_features: int = 3000
-    image_scale: float = 0.75
+from rigbuild.track.params import SparseSchedule
 
 
 def sift_features(frame: ViewFrame, schedule: SparseSchedule | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -1,11 +1,11 @@
-"""Write rigbuild/data/markers/ict.json: the default marker set on the ICT-FaceKit template.
+"""Write rigbuild/assets/marker_sets/ict.json: the default marker set on the ICT-FaceKit template.
 
-Reproducible: every marker is the recipe in :data:`rigbuild.synth.markers.MARKER_RECIPES` (a weighted sum of
+Reproducible: every marker is the recipe in :data:`rigbuild.assets.markers.MARKER_RECIPES` (a weighted sum of
 the ICT template's 68 Multi-PIE landmarks plus an offset in mm), snapped to the nearest front-facing vertex of
 the ICT face skin (vertices 0-9408) as seen from the front. The procedural head uses the same recipes, so
 marker names correspond between the two rigs.
 
-Usage: python scripts/dev/make_ict_markers.py [--out rigbuild/data/markers/ict.json]
+Usage: python scripts/dev/make_ict_markers.py [--out rigbuild/assets/marker_sets/ict.json]
 (needs the ICT data: $RIGBUILD_DATA/ict-facekit/FaceXModel)
 """
 
@@ -18,8 +18,8 @@ import numpy as np
 
 from rigbuild.io.atomic import write_json
 from rigbuild.io.rigs import ICT_FACE_VERTICES, read_ict_rig
-from rigbuild.paths import PROJECT_ROOT, ict_dir
-from rigbuild.synth.markers import marker_targets, snap_to_surface
+from rigbuild.paths import ict_dir
+from rigbuild.assets.markers import MARKER_DIR, marker_targets, snap_to_surface
 
 
 def ict_markers(rig) -> dict[str, int]:
@@ -33,7 +33,7 @@ def ict_markers(rig) -> dict[str, int]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ict", default=str(ict_dir()), help="ICT FaceXModel folder")
-    ap.add_argument("--out", default=str(PROJECT_ROOT / "rigbuild" / "data" / "markers" / "ict.json"))
+    ap.add_argument("--out", default=str(MARKER_DIR / "ict.json"))
     args = ap.parse_args()
     rig = read_ict_rig(args.ict, expressions=["jawOpen"])  # only the neutral and landmarks are used
     markers = ict_markers(rig)

@@ -1,14 +1,14 @@
 """Facial marker sets: named vertex indices per rig, stored as data, and their landmark-based definition.
 
 A marker set is ``{name: vertex_index}`` for one rig topology, stored in
-``rigbuild/data/markers/<rig>.json`` as ``{"rig": "<rig>", "markers": {name: index, ...}}``.
+``rigbuild/assets/marker_sets/<rig>.json`` as ``{"rig": "<rig>", "markers": {name: index, ...}}``.
 
 Names are shared between rigs where the regions correspond (``browInner_L``, ``lipUpper_C``, ...), which is
 what lets retargeting pair markers of different rigs by name. ``_L`` is the actor's left (+x), ``_R`` the
 actor's right (-x), ``_C`` the midline.
 
 Both the ICT set (``scripts/dev/make_ict_markers.py``) and the procedural head's set
-(:func:`rigbuild.synth.head.procedural_head_rig`) are placed by the same recipe: each marker's target
+(:func:`rigbuild.assets.head.procedural_head_rig`) are placed by the same recipe: each marker's target
 point is a weighted combination of the 68 Multi-PIE landmarks plus a small offset in mm
 (:data:`MARKER_RECIPES`, :func:`marker_targets`), snapped to the nearest front-facing face-region vertex
 seen from the front (:func:`snap_to_surface`).
@@ -25,7 +25,8 @@ import numpy as np
 from rigbuild.errors import InputError
 from rigbuild.geometry.mesh import vertex_normals  # noqa: F401 (re-exported)
 
-MARKER_DIR = Path(__file__).resolve().parent.parent / "data" / "markers"
+#: folder of the marker-set JSON files shipped with rigbuild (package data)
+MARKER_DIR = Path(__file__).resolve().parent / "marker_sets"
 
 #: Multi-PIE 68 landmark index of the mirror-image landmark (actor's left <-> right).
 MULTIPIE_MIRROR = np.array(
@@ -169,7 +170,7 @@ def snap_to_surface(
 
 
 def marker_set_path(rig_name: str) -> Path:
-    """Path of the marker-set JSON for ``rig_name`` (a bare name -> ``rigbuild/data/markers/<name>.json``;
+    """Path of the marker-set JSON for ``rig_name`` (a bare name -> ``rigbuild/assets/marker_sets/<name>.json``;
     an existing ``.json`` path is used as is)."""
     p = Path(rig_name)
     if p.suffix == ".json" or os.sep in str(rig_name):
@@ -180,7 +181,7 @@ def marker_set_path(rig_name: str) -> Path:
 def load_marker_set(rig_name: str) -> tuple[list[str], np.ndarray]:
     """Read a marker set.
 
-    rig_name : a rig name (``"ict"`` -> ``rigbuild/data/markers/ict.json``) or a path to such a JSON file.
+    rig_name : a rig name (``"ict"`` -> ``rigbuild/assets/marker_sets/ict.json``) or a path to such a JSON file.
     Returns (names (M,), vertex indices (M,) int64), in the file's order.
     Raises :class:`InputError` if the file is absent or malformed.
     """

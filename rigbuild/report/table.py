@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-from rigbuild.eval.thresholds import status
+from rigbuild.report.thresholds import status
 from rigbuild.io.metrics import flatten_metrics
 
 

@@ -39,7 +39,7 @@ import numpy as np
 
 from rigbuild.errors import InputError
 from rigbuild.rig import Rig
-from rigbuild.synth.markers import marker_names, marker_targets, mirror_name, snap_to_surface, vertex_normals
+from rigbuild.assets.markers import marker_names, marker_targets, mirror_name, snap_to_surface, vertex_normals
 
 #: centre of the radial parametrization (mm)
 C0 = np.array([0.0, -25.0, 0.0])
@@ -366,7 +366,7 @@ def procedural_head_rig(seed: int = 0, resolution: int = 1, variation: float = 1
     -------
     Rig (units "mm", name "procedural") with neutral (V, 3), deltas (K, V, 3) for K = 45 ARKit/ICT-named
     shapes, faces (F, 3) outward, uvs/face_uvs (two LSCM charts), face_region, 68 Multi-PIE landmarks
-    and the default marker set (names shared with ``rigbuild/data/markers/ict.json``).
+    and the default marker set (names shared with ``rigbuild/assets/marker_sets/ict.json``).
     """
     P = head_params(seed, variation)
     n = _grid_size(resolution)
@@ -376,6 +376,68 @@ def procedural_head_rig(seed: int = 0, resolution: int = 1, variation: float = 1
     nv0 = cube.shape[0]
 
     # ---------------------------------------------------------------- cut the slits
+    slits, faces, dup_src = _cut_slits(front, faces, U, V_pre, P, n, nv0)
+    U = np.concatenate([U, U[dup_src]])
+    V_pre = np.concatenate([V_pre, V_pre[dup_src]])
+    d_pre = np.concatenate([d_pre, d_pre[dup_src]])
+    cube = np.concatenate([cube, cube[dup_src]])
+    is_dup = np.concatenate([np.zeros(nv0, dtype=bool), np.ones(dup_src.size, dtype=bool)])
+    openings = _Openings.build(slits, U, V_pre, d_pre, is_dup, P)
+    raw_neutral, V = openings.positions()
+
+    # ---------------------------------------------------------------- mirror map and symmetrization
+    mirror = _mirror_map(cube, is_dup, U)
+    Mx = np.array([-1.0, 1.0, 1.0])
+
+    def symmetrize(x: np.ndarray) -> np.ndarray:
+        return 0.5 * (x + x[..., mirror, :] * Mx)
+
+    def mirror_of(x: np.ndarray) -> np.ndarray:
+        return x[..., mirror, :] * Mx
+
+    neutral = symmetrize(raw_neutral)
+
+    # ---------------------------------------------------------------- UVs, regions, landmarks, markers
+    uvs, face_uvs = _uv_charts(neutral, faces, d_pre)
+    # face skin: brows (and lower forehead) to chin, ear to ear; not the neck or the back of the head
+    in_oval = (np.abs(U) / 96.0) ** 4 + (np.abs(V - (P.mouth_v + 35.0)) / 85.0) ** 3 < 1.0
+    face_region = np.flatnonzero(in_oval & (d_pre[:, 2] > 0.0) & (neutral[:, 1] > -122.0))
+    landmarks = _landmarks(slits, U, V, d_pre, P)
+    landmarks = np.where(landmarks >= 0, landmarks, -1)
+    names_all, marker_vertices = _place_markers(neutral, faces, landmarks, face_region, mirror)
+
+    # ---------------------------------------------------------------- expressions
+    V_mid = V_pre + openings.straighten  # V of every vertex with the slits closed (row = slit midline)
+    shapes = _expressions(neutral, raw_neutral, faces, U, V, V_mid, slits, openings.positions, P, mirror_of,
+                          symmetrize)
+    shape_names = list(shapes)
+    deltas = np.stack([shapes[k] for k in shape_names])
+
+    return Rig(
+        neutral=neutral,
+        deltas=deltas,
+        shape_names=shape_names,
+        faces=faces,
+        uvs=uvs,
+        face_uvs=face_uvs,
+        units="mm",
+        name="procedural",
+        face_region=face_region,
+        landmarks=landmarks,
+        marker_names=names_all,
+        marker_vertices=marker_vertices,
+    )
+
+
+def _cut_slits(front: np.ndarray, faces: np.ndarray, U: np.ndarray, V_pre: np.ndarray, P: HeadParams, n: int,
+               nv0: int) -> tuple[list[_Slit], np.ndarray, np.ndarray]:
+    """Cut the eye and mouth slits along front-patch grid rows.
+
+    front (n+1, n+1) vertex ids of the +z patch; faces (F, 3) (updated in place: the faces below each slit
+    use the duplicated row vertices); U, V_pre (nv0,) face coordinates in mm before opening.
+    Returns the slits (eye_L, eye_R, mouth), faces, and dup_src (D,) the source vertex of each duplicate
+    (duplicate k gets vertex id nv0 + k).
+    """
     fU, fV = U[front], V_pre[front]
 
     def nearest_ij(u, v):
@@ -398,7 +460,6 @@ def procedural_head_rig(seed: int = 0, resolution: int = 1, variation: float = 1
 
     dup_src: list[int] = []
     slits: list[_Slit] = []
-    is_dup = np.zeros(nv0, dtype=bool)
     for name, j, i0, i1_, hu, hl, su, sl, sk, tilt in slit_specs:
         interior = front[i0 + 1 : i1_, j]
         below_row = front[:, j - 1]
@@ -425,68 +486,71 @@ def procedural_head_rig(seed: int = 0, resolution: int = 1, variation: float = 1
                 tilt=tilt,
             )
         )
-    dup_src_a = np.asarray(dup_src, dtype=np.int64)
-    U = np.concatenate([U, U[dup_src_a]])
-    V_pre = np.concatenate([V_pre, V_pre[dup_src_a]])
-    d_pre = np.concatenate([d_pre, d_pre[dup_src_a]])
-    cube = np.concatenate([cube, cube[dup_src_a]])
-    is_dup = np.concatenate([is_dup, np.ones(dup_src_a.size, dtype=bool)])
-    nv = U.size
+    return slits, faces, np.asarray(dup_src, dtype=np.int64)
 
-    # per slit: signed row distance and side of every vertex (before opening)
-    frontish = d_pre[:, 2] > 0.3
-    slit_dv, slit_side = [], []
-    straighten = np.zeros(nv)
-    for s in slits:
-        order = np.argsort(U[s.row])
-        row_u, row_v = U[s.row][order], V_pre[s.row][order]
-        dv = V_pre - np.interp(U, row_u, row_v)
-        dv = np.where(frontish, dv, 1e9)
-        side = np.where(is_dup | (dv < 0.0), -1.0, 1.0)
-        dv[np.isin(np.arange(nv), s.row)] = 0.0
-        slit_dv.append(dv)
-        slit_side.append(side)
-        # bend the (curved) grid row around the slit onto a straight, tilted midline
-        uc = 0.5 * (s.u0 + s.u1)
-        target = np.interp(uc, row_u, row_v) + s.tilt * (np.abs(U) - abs(uc))
-        outside = np.maximum(0.0, np.maximum(s.u0 - U, U - s.u1))
-        taper = 1.0 - _smoothstep(0.0, 15.0, outside)
-        straighten += (target - np.interp(U, row_u, row_v)) * taper * np.maximum(0.0, 1.0 - np.abs(dv) / 20.0)
 
-    def positions(amplitudes: dict[str, tuple[float, float]] | None = None, skews: dict | None = None) -> np.ndarray:
-        """Vertex positions (V, 3) with the slits opened by the given (upper, lower) amplitudes."""
+@dataclass
+class _Openings:
+    """The slits' opening field: every vertex's signed row distance and side per slit, and the row straightening.
+
+    U, V_pre (V,) face coordinates in mm before opening; d_pre (V, 3) unit directions from C0;
+    slit_dv, slit_side: one (V,) array per slit; straighten (V,) dV (mm) that bends the grid rows onto the
+    slits' straight, tilted midlines.
+    """
+
+    slits: list[_Slit]
+    U: np.ndarray
+    V_pre: np.ndarray
+    d_pre: np.ndarray
+    P: HeadParams
+    slit_dv: list[np.ndarray]
+    slit_side: list[np.ndarray]
+    straighten: np.ndarray
+
+    @classmethod
+    def build(cls, slits: list[_Slit], U: np.ndarray, V_pre: np.ndarray, d_pre: np.ndarray, is_dup: np.ndarray,
+              P: HeadParams) -> "_Openings":
+        """Per slit: signed row distance and side of every vertex (before opening), and the straightening."""
+        nv = U.size
+        frontish = d_pre[:, 2] > 0.3
+        slit_dv, slit_side = [], []
+        straighten = np.zeros(nv)
+        for s in slits:
+            order = np.argsort(U[s.row])
+            row_u, row_v = U[s.row][order], V_pre[s.row][order]
+            dv = V_pre - np.interp(U, row_u, row_v)
+            dv = np.where(frontish, dv, 1e9)
+            side = np.where(is_dup | (dv < 0.0), -1.0, 1.0)
+            dv[np.isin(np.arange(nv), s.row)] = 0.0
+            slit_dv.append(dv)
+            slit_side.append(side)
+            # bend the (curved) grid row around the slit onto a straight, tilted midline
+            uc = 0.5 * (s.u0 + s.u1)
+            target = np.interp(uc, row_u, row_v) + s.tilt * (np.abs(U) - abs(uc))
+            outside = np.maximum(0.0, np.maximum(s.u0 - U, U - s.u1))
+            taper = 1.0 - _smoothstep(0.0, 15.0, outside)
+            straighten += (target - np.interp(U, row_u, row_v)) * taper * np.maximum(0.0, 1.0 - np.abs(dv) / 20.0)
+        return cls(slits, U, V_pre, d_pre, P, slit_dv, slit_side, straighten)
+
+    def positions(self, amplitudes: dict[str, tuple[float, float]] | None = None,
+                  skews: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Vertex positions (V, 3) mm with the slits opened by the given (upper, lower) amplitudes, and V (V,)."""
         amplitudes = amplitudes or {}
         skews = skews or {}
-        dV = straighten.copy()
-        for s, dv, side in zip(slits, slit_dv, slit_side):
+        U, V_pre = self.U, self.V_pre
+        dV = self.straighten.copy()
+        for s, dv, side in zip(self.slits, self.slit_dv, self.slit_side):
             up, low = amplitudes.get(s.name, (s.h_upper, s.h_lower))
             dV += _slit_offset(s, U, dv, side, up, low, skews.get(s.name))
         moved = dV != 0.0
-        d = d_pre.copy()
+        d = self.d_pre.copy()
         d[moved] = uv_to_direction(U[moved], V_pre[moved] + dV[moved])
-        return C0 + _radius(d, P)[:, None] * d, V_pre + dV
+        return C0 + _radius(d, self.P)[:, None] * d, V_pre + dV
 
-    raw_neutral, V = positions()
 
-    # ---------------------------------------------------------------- mirror map and symmetrization
-    mirror = _mirror_map(cube, is_dup, U)
-    Mx = np.array([-1.0, 1.0, 1.0])
-
-    def symmetrize(x: np.ndarray) -> np.ndarray:
-        return 0.5 * (x + x[..., mirror, :] * Mx)
-
-    def mirror_of(x: np.ndarray) -> np.ndarray:
-        return x[..., mirror, :] * Mx
-
-    neutral = symmetrize(raw_neutral)
-
-    # ---------------------------------------------------------------- UVs, regions, landmarks, markers
-    uvs, face_uvs = _uv_charts(neutral, faces, d_pre)
-    # face skin: brows (and lower forehead) to chin, ear to ear; not the neck or the back of the head
-    in_oval = (np.abs(U) / 96.0) ** 4 + (np.abs(V - (P.mouth_v + 35.0)) / 85.0) ** 3 < 1.0
-    face_region = np.flatnonzero(in_oval & (d_pre[:, 2] > 0.0) & (neutral[:, 1] > -122.0))
-    landmarks = _landmarks(slits, U, V, d_pre, P)
-    landmarks = np.where(landmarks >= 0, landmarks, -1)
+def _place_markers(neutral: np.ndarray, faces: np.ndarray, landmarks: np.ndarray, face_region: np.ndarray,
+                   mirror: np.ndarray) -> tuple[list[str], np.ndarray]:
+    """The default marker set: names (M,) and vertex ids (M,) int64, each ``_R`` the mirror of its ``_L``."""
     names_all = marker_names()
     _, targets = marker_targets(neutral[landmarks])
     snapped = snap_to_surface(neutral, faces, targets, candidates=face_region)
@@ -497,28 +561,7 @@ def procedural_head_rig(seed: int = 0, resolution: int = 1, variation: float = 1
             mk.append(by_name[nm])
         else:  # _R: exact mirror of the _L vertex
             mk.append(mirror[by_name[mirror_name(nm)]])
-    marker_vertices = np.asarray(mk, dtype=np.int64)
-
-    # ---------------------------------------------------------------- expressions
-    V_mid = V_pre + straighten  # V of every vertex with the slits closed (row = slit midline)
-    shapes = _expressions(neutral, raw_neutral, faces, U, V, V_mid, slits, positions, P, mirror_of, symmetrize)
-    shape_names = list(shapes)
-    deltas = np.stack([shapes[k] for k in shape_names])
-
-    return Rig(
-        neutral=neutral,
-        deltas=deltas,
-        shape_names=shape_names,
-        faces=faces,
-        uvs=uvs,
-        face_uvs=face_uvs,
-        units="mm",
-        name="procedural",
-        face_region=face_region,
-        landmarks=landmarks,
-        marker_names=names_all,
-        marker_vertices=marker_vertices,
-    )
+    return names_all, np.asarray(mk, dtype=np.int64)
 
 
 def _mirror_map(cube: np.ndarray, is_dup: np.ndarray, U: np.ndarray) -> np.ndarray:

@@ -1,0 +1,70 @@
+"""The retargeting methods the pipeline runs and their metric keys: the one registry.
+
+``rules/common.smk`` imports :data:`PIPELINE_METHODS` and :data:`RIBERA_METHODS` (targets, wildcard
+constraints); ``rigbuild.retarget.ribera`` checks its ``method`` against :data:`RIBERA_METHODS`; the stage
+and evaluation jobs write their numbers under :func:`metric_prefixes` (``retarget.<prefix>.<character>.*``).
+Plain Python, no imports: cheap at DAG start.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+#: methods of rule ``retarget_ribera`` (Ribera et al. 2017 as written, its activation-aware and ROM-fit
+#: E_Match options, the RBF-transfer and deformation-transfer baselines)
+RIBERA_METHODS = ["ribera", "ribera_activation", "ribera_fit", "rbf", "deformation"]
+#: the method of rule ``retarget_seol`` (Seol et al. 2012 spacetime expression cloning)
+SEOL_METHOD = "seol"
+#: every method run per (performance, character), in report order
+PIPELINE_METHODS = RIBERA_METHODS + [SEOL_METHOD]
+#: the Ribera variants one of which is ``params.retarget.ribera.primary``
+RIBERA_VARIANTS = ("ribera", "ribera_activation", "ribera_fit")
+#: the Ribera variant whose numbers are also reported as ``retarget.ribera.*`` (the default of ``primary``)
+PRIMARY_RIBERA_METHOD = "ribera_fit"
+#: the metric prefix under which the primary variant is reported a second time
+PRIMARY_PREFIX = "ribera"
+
+#: method -> metric prefix of its own numbers (``retarget.<prefix>.<character>.*``)
+METHOD_KEYS = {"ribera": "ribera_faithful", "ribera_activation": "ribera_activation", "ribera_fit": "ribera_fit",
+               "rbf": "rbf_baseline", "deformation": "deformation_baseline", "seol": "seol"}
+#: Seol job: result (spacetime solution or sec. 7 baseline) -> metric prefix
+SEOL_RESULT_KEYS = {
+    "spacetime": "seol",
+    "no_constraint": "noconst",
+    "perframe_range": "perframe_range",
+    "perframe_prior": "perframe_prior",
+    "spacetime_paper": "seol_paper",
+}
+
+
+def check_primary(primary: str) -> None:
+    """Raise InputError unless ``primary`` is a Ribera variant."""
+    if primary not in RIBERA_VARIANTS:
+        from rigbuild.errors import InputError
+
+        raise InputError(f"params.retarget.ribera.primary '{primary}' is not a Ribera variant", path="config",
+                         fix=f"use one of {list(RIBERA_VARIANTS)}")
+
+
+def metric_prefixes(method: str, primary: str = PRIMARY_RIBERA_METHOD) -> list[str]:
+    """Prefixes under which ``method``'s numbers are reported: its own key, plus ``ribera`` when it is the
+    primary Ribera variant."""
+    check_primary(primary)
+    return [METHOD_KEYS[method]] + ([PRIMARY_PREFIX] if method == primary else [])
+
+
+def method_metrics(method: str, character: str, values: Mapping[str, Any],
+                   primary: str = PRIMARY_RIBERA_METHOD) -> dict[str, dict[str, dict[str, Any]]]:
+    """``{prefix: {character: values}}`` for every prefix of ``method`` (the ``retarget`` fragment's body)."""
+    return {prefix: {str(character): dict(values)} for prefix in metric_prefixes(method, primary)}
+
+
+def seol_result_metrics(per_result: Mapping[str, Mapping[str, Any]],
+                        character: str) -> dict[str, dict[str, dict[str, Any]]]:
+    """``{prefix: {character: values}}`` of a Seol job's results (:data:`SEOL_RESULT_KEYS`)."""
+    return {SEOL_RESULT_KEYS.get(name, name): {str(character): dict(values)} for name, values in per_result.items()}
+
+
+def wildcard(methods: list[str]) -> str:
+    """A Snakemake wildcard constraint matching exactly these method names."""
+    return "|".join(methods) or "(?!)"

@@ -1,0 +1,292 @@
+"""``config["params"]["retarget"]``: the Ribera 2017 and Seol 2012 parameters, one typed definition each.
+
+The block has two sub-blocks, ``ribera`` (:class:`RiberaParams`, rule ``retarget_ribera``) and ``seol``
+(:class:`SeolParams`, rule ``retarget_seol``). :func:`from_config` builds both and does all checking
+(unknown keys with "did you mean", enum values, ``primary`` a Ribera variant, interval lengths), so
+``rigbuild.params.validate_params`` rejects a bad block at DAG start; :func:`ribera_from_config` and
+:func:`seol_from_config` build one sub-block (what each job is given).
+
+The solver-level parameter classes of the Ribera method, :class:`TransferParams` (sec. 4) and
+:class:`RetargetParams` (sec. 5), live here too: their fields hold the paper's defaults, and
+:class:`RiberaParams` takes its defaults from them (``bounds`` excepted: the pipeline bounds the weights
+to [0, 1], the solver does not by default). Plain dataclasses: cheap to import.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Optional
+
+from rigbuild.errors import InputError
+from rigbuild.params import from_mapping
+from rigbuild.retarget.methods import PRIMARY_RIBERA_METHOD, check_primary
+
+WHERE = "params.retarget"
+
+# ----------------------------------------------------------------------------- Ribera et al. 2017
+PAPER_ALPHA = 0.01
+PAPER_BETA = 0.1
+PAPER_R = 15.0
+PAPER_MU = 0.3
+PAPER_LAMBDA_CM = 0.6
+#: squared-length factor between the paper's cm and our mm
+CM2_TO_MM2 = 100.0
+
+#: initial guesses g_k of E_Mesh (``TransferParams.guess``)
+GUESSES = ("rbf", "deformation")
+#: E_CEG reference (``TransferParams.ceg_reference``)
+CEG_REFERENCES = ("character", "rbf")
+#: rigid head motion in E_Fit (``RetargetParams.rigid``)
+RIGID_MODES = ("joint", "fixed")
+
+
+@dataclass
+class TransferParams:
+    """Blendshape-transfer parameters (paper values by default).
+
+    alpha : E_Mesh weight (0.01); beta : E_CEG weight (0.1); r : contrast steepness (15).
+    ceg_reference : ``"character"`` (eq. 13 as written: ``Lambda(dp - ds)``) or ``"rbf"`` (``Lambda(dp - dg)``).
+    epsilon : tiny Tikhonov weight pulling ``dp`` to ``dg``; makes the system positive definite where E_Match
+        has no support (E_Mesh and E_CEG leave a common translation free). Negligible otherwise.
+    match : ``"faithful"`` (eq. 10 as written), ``"fit"`` (the ROM-fit E_Match, see
+        :func:`rigbuild.retarget.ribera.fit_match_transfer`) or ``"activation"``: the activation-aware E_Match
+        (see :func:`rigbuild.retarget.ribera.transfer_blendshapes`), ``match_iterations`` alternations.
+    solver : ``"kronecker"`` (exact/PCG on the Kronecker-sum structure) or ``"cholmod"`` (sparse Cholesky of
+        the assembled (MK x MK) matrix; same answer, slower).
+    fit_alpha, fit_lambda_cm, fit_mu, fit_frames : the ``"fit"`` match: its E_Mesh weight (its E_Match has one
+        residual per frame, not one per shape and frame, so the balance differs from alpha), the E_Sparse /
+        E_Prior weights of the training-frame activations (the section-5 energy with a sparser lambda, for
+        cm) and the frames matched (``"all"`` training frames or the ``"keys"`` of sec. 4.2).
+    guess : initial guesses g_k for E_Mesh (and the ``rbf`` baseline). ``"rbf"`` (sec. 4.4 as written:
+        the thin-plate RBF ``s0 -> a0`` evaluated at the displaced markers) or ``"deformation"`` (the
+        character's whole-mesh blendshapes deformation-transferred onto the character's neutral warped by
+        that RBF into the actor's proportions, sampled at the markers; needs the character mesh, so
+        ``build_model`` computes it).
+
+    Units: E_Match, E_Mesh and E_CEG are all squared marker displacements (the cotangent weights and the
+    CEG Laplacian are dimensionless), so alpha and beta are unit-free: the paper's 0.01 / 0.1 (cm) are the
+    same numbers in mm.
+    """
+
+    alpha: float = PAPER_ALPHA
+    beta: float = PAPER_BETA
+    r: float = PAPER_R
+    ceg_reference: str = "character"
+    epsilon: float = 1e-6
+    match: str = "faithful"
+    match_iterations: int = 2
+    fit_alpha: float = 0.3
+    fit_lambda_cm: float = 0.2
+    fit_mu: float = PAPER_MU
+    fit_frames: str = "all"
+    solver: str = "kronecker"
+    guess: str = "rbf"
+
+
+@dataclass
+class RetargetParams:
+    """Retargeting parameters in the paper's units; converted to mm internally.
+
+    mu : E_Prior weight (paper 0.3). lambda_cm : E_Sparse weight for markers in cm (paper 0.6); in mm the
+    solver uses ``lambda_cm * 100``. bounds : (lo, hi) weight bounds, either may be None (no bound).
+    irls_iterations, irls_eps : IRLS for the L1 term (``|w| ~ w^2 / |w_prev|``). active_set_passes : passes of
+    the bound-constrained solve. refine_rigid : extra rounds of rigid head-motion removal against the fitted
+    expression.
+    rigid : ``"joint"`` (default): E_Fit is minimized jointly over the weights and a residual small rigid
+        motion of the stabilized frame (6 unbounded, unpenalized unknowns, eliminated exactly by a Schur
+        complement, see :class:`rigbuild.retarget.ribera.RiberaRetargeter`); ``"fixed"``: the stabilized
+        frame is taken as is. A rigid fit to the neutral alone absorbs part of every expression (jawOpen
+        reads partly as a head tilt).
+    """
+
+    mu: float = PAPER_MU
+    lambda_cm: float = PAPER_LAMBDA_CM
+    bounds: Optional[tuple[Optional[float], Optional[float]]] = None
+    irls_iterations: int = 8
+    irls_eps: float = 1e-3
+    active_set_passes: int = 6
+    refine_rigid: int = 1
+    rigid: str = "joint"
+
+    @property
+    def lambda_mm(self) -> float:
+        return self.lambda_cm * CM2_TO_MM2
+
+
+@dataclass
+class RiberaParams:
+    """``params.retarget.ribera``: one Ribera job's parameters (rule ``retarget_ribera``).
+
+    alpha, beta, r, ceg_reference, fit_alpha, fit_lambda_cm : :class:`TransferParams` (lambda for cm).
+    guess : g_k of E_Mesh for ``ribera`` / ``ribera_activation`` (``rbf``, sec. 4.4, or ``deformation``);
+    fit_guess : g_k for ``ribera_fit``.
+    rigid, mu, lambda_cm, bounds : :class:`RetargetParams` (``bounds`` [lo, hi] or null).
+    allow_empty_frames : frames with fewer than 3 visible markers get interpolated weights (else an error).
+    preview_frames : frames drawn in preview.png (the most active ones).
+    primary : the Ribera variant also reported as ``retarget.ribera.*``.
+    marker_lowpass_hz : zero-phase low-pass of the take's markers (-3 dB, Hz) before solving, or null.
+    """
+
+    alpha: float = TransferParams.alpha
+    beta: float = TransferParams.beta
+    r: float = TransferParams.r
+    ceg_reference: str = TransferParams.ceg_reference
+    guess: str = TransferParams.guess
+    fit_guess: str = "deformation"
+    fit_alpha: float = TransferParams.fit_alpha
+    fit_lambda_cm: float = TransferParams.fit_lambda_cm
+    rigid: str = RetargetParams.rigid
+    mu: float = RetargetParams.mu
+    lambda_cm: float = RetargetParams.lambda_cm
+    bounds: Optional[tuple[float, float]] = (0.0, 1.0)
+    allow_empty_frames: bool = True
+    preview_frames: int = 4
+    primary: str = PRIMARY_RIBERA_METHOD
+    marker_lowpass_hz: Optional[float] = None
+
+    def transfer_params(self, method: str) -> TransferParams:
+        """The transfer parameters of ``method`` (``ribera_fit`` takes ``fit_guess``)."""
+        return TransferParams(alpha=float(self.alpha), beta=float(self.beta), r=float(self.r),
+                              ceg_reference=str(self.ceg_reference),
+                              guess=str(self.fit_guess if method == "ribera_fit" else self.guess),
+                              fit_alpha=float(self.fit_alpha), fit_lambda_cm=float(self.fit_lambda_cm))
+
+    def retarget_params(self) -> RetargetParams:
+        bounds = None if self.bounds is None else tuple(self.bounds)
+        return RetargetParams(mu=float(self.mu), lambda_cm=float(self.lambda_cm), bounds=bounds, rigid=str(self.rigid))
+
+
+# ----------------------------------------------------------------------------- Seol et al. 2012
+#: The paper's prior weight for movement matching (sec. 5, fig. 7(f)) and for per-frame matching
+#: with the prior (sec. 7, "Prior PF"); the hard range of "Range PF".
+DEFAULT_ALPHA = 0.01
+DEFAULT_ALPHA_PERFRAME = 0.5
+DEFAULT_WEIGHT_RANGE = (-0.5, 1.5)
+
+#: scale-proportion matching modes (``rigbuild.retarget.proportion``) and RBF kernels
+SCALE_MATCH_KERNELS = ("r", "r3", "tps")
+SCALE_MATCH_MARKER_MODES = ("rbf", "jacobian", "local_affine", "affine", "none")
+SCALE_MATCH_MODES = SCALE_MATCH_MARKER_MODES + ("deformation",)
+BOUNDARY_VALUES = ("neutral", "perframe")
+GAP_MODES = ("mask", "interpolate")
+RIGID_WEIGHTS = ("rigidity", "uniform")
+SOBOLEV_KEYS = ("regions", "frames")
+
+
+@dataclass
+class SeolParams:
+    """``params.retarget.seol``: spacetime expression cloning (:func:`rigbuild.retarget.seol.retarget_seol`).
+
+    alpha : prior weight of eq. (4) (the paper: 0.01 with mm-scale faces); prior_corner_hz : the prior
+        strength as a corner frequency (Hz) instead, overriding alpha.
+    alpha_perframe : prior weight of the "Prior PF" baseline; weight_range : bounds of the "Range PF" baseline.
+    boundary_frames : frames pinned at the boundary values (default first and last); boundary_values :
+        ``neutral`` (all weights 0, the paper's protocol) or ``perframe`` (the Range-PF solution there).
+    pins : extra boundary conditions ``{frame: {shape: value}}``.
+    rigid_weights : ``rigidity`` (markers the target's shapes move little count more in the head-motion
+        fit) or ``uniform`` (all markers equally, the paper).
+    head_refine_iterations : Gauss-Newton refinements of the head motion with per-frame weights (0 = the
+        paper's plain Procrustes).
+    sobolev : sec. 7.1 term ``{"regions": {regex: beta}, "frames": [..] or null}``, or null;
+        sobolev_corner_hz : a uniform Sobolev term on every marker, ``beta = (2 pi f_c / fps)^2``.
+    gaps : ``mask`` (marker gaps left out of the energy) or ``interpolate`` (filled linearly first).
+    prior_combinations, prior_combination_density : extra sparse-combination training frames of the PCA prior.
+    scale_match, scale_match_kernel : scale-proportion matching (sec. 3.2, ``rbf`` the paper;
+        :data:`SCALE_MATCH_MODES`) and the RBF's phi (``r`` the paper, ``r3``, ``tps``).
+    marker_lowpass_hz : zero-phase low-pass of the take's markers (-3 dB, Hz) before solving, or null.
+    weight_bounds : [lo, hi]: the spacetime solution kept in the rig's weight range, or null (the paper).
+    sparsity : L1 weight (mm^2 per unit weight; not in the paper); needs weight_bounds from 0.
+    """
+
+    alpha: float = DEFAULT_ALPHA
+    alpha_perframe: float = DEFAULT_ALPHA_PERFRAME
+    weight_range: tuple[float, float] = DEFAULT_WEIGHT_RANGE
+    boundary_frames: tuple[int, ...] = (0, -1)
+    boundary_values: str = "neutral"
+    pins: dict = field(default_factory=dict)
+    rigid_weights: str = "rigidity"
+    head_refine_iterations: int = 3
+    sobolev: Optional[dict] = None
+    sobolev_corner_hz: Optional[float] = None
+    gaps: str = "mask"
+    prior_corner_hz: Optional[float] = None
+    prior_combinations: int = 0
+    prior_combination_density: float = 0.15
+    scale_match: str = "rbf"
+    scale_match_kernel: str = "r"
+    marker_lowpass_hz: Optional[float] = None
+    weight_bounds: Optional[tuple[float, float]] = None
+    sparsity: float = 0.0
+
+
+@dataclass
+class RetargetStageParams:
+    """The whole ``params.retarget`` block."""
+
+    ribera: RiberaParams = field(default_factory=RiberaParams)
+    seol: SeolParams = field(default_factory=SeolParams)
+
+
+# ----------------------------------------------------------------------------------------- checks
+def _one_of(value: Any, allowed: tuple, where: str) -> None:
+    if value not in allowed:
+        raise InputError(f"'{where}' is {value!r}", path="config", fix=f"use one of {list(allowed)}")
+
+
+def _interval(value: Any, where: str, optional: bool) -> None:
+    if value is None and optional:
+        return
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        raise InputError(f"'{where}' must be [lo, hi], got {value!r}", path="config")
+
+
+def check_ribera(p: RiberaParams, where: str = f"{WHERE}.ribera") -> RiberaParams:
+    _one_of(p.guess, GUESSES, f"{where}.guess")
+    _one_of(p.fit_guess, GUESSES, f"{where}.fit_guess")
+    _one_of(p.ceg_reference, CEG_REFERENCES, f"{where}.ceg_reference")
+    _one_of(p.rigid, RIGID_MODES, f"{where}.rigid")
+    _interval(p.bounds, f"{where}.bounds", optional=True)
+    check_primary(p.primary)
+    return p
+
+
+def check_seol(p: SeolParams, where: str = f"{WHERE}.seol") -> SeolParams:
+    _one_of(p.boundary_values, BOUNDARY_VALUES, f"{where}.boundary_values")
+    _one_of(p.gaps, GAP_MODES, f"{where}.gaps")
+    _one_of(p.rigid_weights, RIGID_WEIGHTS, f"{where}.rigid_weights")
+    _one_of(p.scale_match, SCALE_MATCH_MODES, f"{where}.scale_match")
+    _one_of(p.scale_match_kernel, SCALE_MATCH_KERNELS, f"{where}.scale_match_kernel")
+    _interval(p.weight_range, f"{where}.weight_range", optional=False)
+    _interval(p.weight_bounds, f"{where}.weight_bounds", optional=True)
+    if p.sobolev:
+        if not isinstance(p.sobolev, Mapping):
+            raise InputError(f"'{where}.sobolev' must be a mapping {{regions, frames}}", path="config")
+        from rigbuild.params import check_keys
+
+        check_keys(p.sobolev, SOBOLEV_KEYS, f"{where}.sobolev")
+    if not isinstance(p.pins or {}, Mapping):
+        raise InputError(f"'{where}.pins' must be a mapping {{frame: {{shape: value}}}}", path="config")
+    return p
+
+
+def ribera_from_config(values: Mapping[str, Any] | None) -> RiberaParams:
+    """``params.retarget.ribera`` -> :class:`RiberaParams` (checked)."""
+    if isinstance(values, RiberaParams):
+        return check_ribera(values)
+    return check_ribera(from_mapping(RiberaParams, values, f"{WHERE}.ribera"))
+
+
+def seol_from_config(values: Mapping[str, Any] | None) -> SeolParams:
+    """``params.retarget.seol`` -> :class:`SeolParams` (checked)."""
+    if isinstance(values, SeolParams):
+        return check_seol(values)
+    return check_seol(from_mapping(SeolParams, values, f"{WHERE}.seol"))
+
+
+def from_config(values: Mapping[str, Any] | None) -> RetargetStageParams:
+    """``config["params"]["retarget"]`` ({ribera: ..., seol: ...}) -> :class:`RetargetStageParams`; InputError
+    ("did you mean") on an unknown key of the block or of either sub-block, and on a bad value."""
+    p = from_mapping(RetargetStageParams, {k: (v or {}) for k, v in dict(values or {}).items()}, WHERE)
+    check_ribera(p.ribera)
+    check_seol(p.seol)
+    return p

@@ -1,0 +1,162 @@
+"""The retargeting jobs: rule ``retarget_ribera`` (:func:`run_ribera`) and rule ``retarget_seol`` (:func:`run_seol`).
+
+Each reads the performance take, the actor's tracked ROM markers and the character rig, solves, and writes the
+weight curves (CSV, JSON), the glTF animation, a figure, and its metrics fragment
+``{"retarget": {<prefix>: {<character>: {...}}}}`` (prefixes: :mod:`rigbuild.retarget.methods`). The fragment's
+keys name the method and the character, not the performance: a session's first performance is the one
+gathered into metrics.json (``retarget_metric_files`` in rules/retarget.smk).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from rigbuild.errors import InputError
+from rigbuild.io.curves import write_weight_curves_csv, write_weight_curves_json
+from rigbuild.io.gltf_anim import write_gltf_animation
+from rigbuild.io.markers import read_markers
+from rigbuild.io.metrics import write_metrics_fragment
+from rigbuild.io.rigs import read_rig_npz
+from rigbuild.params import as_dict
+from rigbuild.retarget.methods import RIBERA_METHODS, method_metrics, seol_result_metrics
+from rigbuild.retarget.params import ribera_from_config, seol_from_config
+
+Path = str | os.PathLike
+
+
+def ribera_job_metrics(res, n_markers: int) -> dict[str, Any]:
+    """A Ribera job's numbers: timings (s), frames/s, frame and marker counts, weight range, the RMS second
+    difference of the weight curves (per frame^2) and the number of key expressions of the transfer."""
+    F = res.weights.shape[0]
+    jitter = float(np.sqrt(np.mean(np.diff(res.weights, 2, axis=0) ** 2))) if F > 2 else 0.0
+    values = {"build_s": res.timings["build_s"], "retarget_s": res.timings["retarget_s"],
+              "frames_per_s": F / max(res.timings["retarget_s"], 1e-9), "n_frames": F,
+              "n_markers": int(n_markers), "empty_frames": int(res.empty_frames.size),
+              "weight_min": float(res.weights.min()), "weight_max": float(res.weights.max()),
+              "second_difference_rms": jitter}
+    if res.model.transfer is not None:
+        values["n_keys"] = int(res.model.transfer.keys.size)
+    return values
+
+
+def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, method: str, character: str,
+               performance_name: str, ribera: Mapping[str, Any] | None, neutral_frames: Sequence[int] | None, *,
+               weights: Path, weights_json: Path, gltf: Path, preview: Path, metrics: Path,
+               workers: int = 1) -> dict[str, Any]:
+    """Rule ``retarget_ribera``: one performance onto one character with one method of
+    :data:`~rigbuild.retarget.methods.RIBERA_METHODS`.
+
+    performance : .c3d/.npz markers; training : tracked ROM marker .npz files (``markers`` F x M x 3 mm,
+    ``marker_names``); rig_path : character .npz with its marker map; ribera : ``params.retarget.ribera``;
+    neutral_frames : the neutral row of each training file. Writes the outputs named by the keywords; returns
+    the metrics."""
+    from rigbuild.retarget.preview import write_preview
+    from rigbuild.retarget.run import make_training_set, retarget_performance
+
+    p = ribera_from_config(ribera)
+    if method not in RIBERA_METHODS:
+        raise InputError(f"unknown method '{method}'", path="config", fix=f"use one of {RIBERA_METHODS}")
+    take = read_markers(performance)
+    files = list(training)
+    takes = [read_markers(f) for f in files]
+    ts = make_training_set([t.markers for t in takes], [t.names for t in takes], list(neutral_frames or [0]), files)
+    rig = read_rig_npz(rig_path)
+    if rig.marker_vertices.size == 0:
+        raise InputError(f"character '{rig.name}' has no marker map", path=rig_path,
+                         fix="build the character with the session's marker set")
+    res = retarget_performance(ts, take.markers, take.names, rig, rig.marker_names, rig.marker_vertices, method,
+                               p.transfer_params(method), p.retarget_params(),
+                               allow_empty_frames=bool(p.allow_empty_frames), performance_path=performance,
+                               map_path=rig_path, workers=int(workers),
+                               marker_lowpass_hz=None if p.marker_lowpass_hz is None else float(p.marker_lowpass_hz),
+                               fps=take.fps)
+    fps = take.fps
+    meta = {"method": method, "character": rig.name, "params": as_dict(p)}
+    write_weight_curves_csv(weights, res.weights, res.shape_names, fps)
+    write_weight_curves_json(weights_json, res.weights, res.shape_names, fps, meta=meta)
+    write_gltf_animation(gltf, rig, res.weights, fps)
+    activity = np.abs(res.weights).sum(1)
+    frames = sorted(set(np.argsort(-activity)[: max(1, int(p.preview_frames))].tolist()))
+    write_preview(preview, res.stabilized, ts.neutral, rig, res.weights, frames, fps,
+                  title=f"{performance_name} -> {rig.name} ({method})")
+    values = ribera_job_metrics(res, len(ts.names))
+    write_metrics_fragment(metrics, "retarget", method_metrics(method, character, values, p.primary))
+    logging.getLogger("rigbuild.retarget.ribera").info(
+        "%s %s -> %s: %d frames, build %.2f s, %.0f frames/s", method, performance_name, character,
+        values["n_frames"], values["build_s"], values["frames_per_s"])
+    return values
+
+
+def seol_neutral(files: Sequence[Path], frames: Sequence[int] | None, names: Sequence[str]) -> np.ndarray:
+    """The actor's neutral (M, 3) mm in ``names`` order: the rigidly aligned mean of row ``frames[i]`` of each
+    tracked ROM marker file ``files[i]`` (default row 0 of each)."""
+    from rigbuild.retarget.common import average_neutral, reorder_markers
+
+    files = list(files)
+    frames = list(frames or [0] * len(files))
+    if len(frames) != len(files):
+        raise InputError(f"{len(files)} neutral marker files but {len(frames)} neutral frames", path="rules",
+                         fix="give one neutral frame per ROM marker file")
+    rows = []
+    for path, frame in zip(files, frames):
+        rom = read_markers(path)
+        if not 0 <= int(frame) < rom.markers.shape[0]:
+            raise InputError(f"neutral frame {frame} outside the {rom.markers.shape[0]} frames", path=path)
+        rows.append(reorder_markers(rom.markers, rom.names, names, what="neutral sequence", path=path)[int(frame)])
+    return average_neutral(np.stack(rows))
+
+
+def run_seol(performance: Path, rig_path: Path, neutral: Sequence[Path] | None, neutral_frames: Sequence[int] | None,
+             character: str, performance_name: str, seol: Mapping[str, Any] | None, *, weights: Path,
+             weights_json: Path, gltf: Path, plot: Path, metrics: Path, system: Path) -> dict[str, Any]:
+    """Rule ``retarget_seol``: spacetime expression cloning (Seol et al. 2012) of one performance onto one
+    character, with the sec. 7 per-frame baselines, the fig. 11 velocity-error plot and ``system.npz`` for
+    ``rigbuild edit``.
+
+    neutral : tracked ROM marker files whose rows ``neutral_frames`` are neutral poses (None: the take's first
+    frame); seol : ``params.retarget.seol``. Writes the outputs named by the keywords; returns the metrics."""
+    from rigbuild.retarget.common import reorder_markers
+    from rigbuild.retarget.seol import retarget_seol
+    from rigbuild.retarget.seol_outputs import plot_velocity_error
+
+    p = seol_from_config(seol)
+    t0 = time.perf_counter()
+    take = read_markers(performance)
+    rig = read_rig_npz(rig_path)
+    names = [n for n in rig.marker_names if n in set(take.names)]
+    if len(names) < 4:
+        raise InputError(f"only {len(names)} markers of the take are on character '{rig.name}'", path=performance,
+                         fix="use a character marker map with the take's marker names")
+    X = reorder_markers(take.markers, take.names, names, path=performance)
+    Y = None if not neutral else seol_neutral([neutral] if isinstance(neutral, str) else neutral, neutral_frames, names)
+    res = retarget_seol(X, rig, marker_names=names, source_neutral=Y, params=p, fps=float(take.fps))
+    seconds = time.perf_counter() - t0
+    fps = take.fps
+    write_weight_curves_csv(weights, res.weights, res.shape_names, fps)
+    write_weight_curves_json(weights_json, res.weights, res.shape_names, fps,
+                             meta={"method": "seol2012", "alpha": res.alpha, "character": rig.name,
+                                   "scale_match": p.scale_match, "params": as_dict(p)})
+    # head motion and pivot are in mm: write the character in mm too
+    write_gltf_animation(gltf, rig if rig.units == "mm" else rig.to_units("mm"), res.weights, fps,
+                         res.head_rotation, res.head_translation, pivot=res.target_pivot)
+    plot_velocity_error(plot, res.velocity_error, fps, title=f"{performance_name} -> {rig.name}")
+    res.system.save(system)
+    values = {"seconds": seconds, "n_frames": int(X.shape[0]), "n_markers": len(names), "alpha": res.alpha}
+    per_result = {}
+    for name, curve in res.velocity_error.items():
+        W = res.weights if name == "spacetime" else res.baselines[name]
+        per_result[name] = {"velocity_error": float(curve.sum()), "weight_min": float(W.min()),
+                            "weight_max": float(W.max())}
+    body = seol_result_metrics(per_result, character)
+    body["seol"][str(character)] = {**values, **body["seol"][str(character)]}
+    write_metrics_fragment(metrics, "retarget", body)
+    logging.getLogger("rigbuild.retarget.seol").info(
+        "seol %s -> %s: %d frames in %.2f s, velocity error %.1f (Range PF %.1f, Prior PF %.1f)", performance_name,
+        character, X.shape[0], seconds, per_result["spacetime"]["velocity_error"],
+        per_result["perframe_range"]["velocity_error"], per_result["perframe_prior"]["velocity_error"])
+    return {"seol": values, **per_result}

@@ -1,0 +1,55 @@
+"""Figures of the tracking stage: the per-frame residual plot and the mesh/marker overlays on a view."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from rigbuild.io.atomic import atomic_path
+from rigbuild.track.matches import ViewFrame
+
+
+def residual_plot(path: str | os.PathLike, rows: list[dict], title: str) -> None:
+    """residuals.png: per frame the constraint residual (median, p90, mm; lost frames marked) and the match
+    counts per level. rows : :func:`rigbuild.track.stage.stats_rows` (one dict per frame)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    f = [r["frame"] for r in rows]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.5))
+    ax[0].plot(f, [r["residual_median_mm"] for r in rows], "o-", label="median")
+    ax[0].plot(f, [r["residual_p90_mm"] for r in rows], "s--", label="p90")
+    lost = [r["frame"] for r in rows if r["lost"]]
+    for x in lost:
+        ax[0].axvline(x, color="r", alpha=0.3)
+    ax[0].set_xlabel("frame"); ax[0].set_ylabel("constraint residual (mm)"); ax[0].legend(); ax[0].set_title(title)
+    for key in ("dots", "sparse", "flow"):
+        ax[1].plot(f, [max(r[key], 0.5) for r in rows], "o-", label=key)
+    ax[1].set_yscale("log"); ax[1].set_xlabel("frame"); ax[1].set_ylabel("matches"); ax[1].legend()
+    fig.tight_layout()
+    with atomic_path(Path(path), suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+
+
+def draw_overlay(path: str | os.PathLike, view: ViewFrame, vertices: np.ndarray, markers: np.ndarray,
+                 face_vertices: np.ndarray) -> None:
+    """A view's image with every 7th face-region vertex (green dots) and the markers (red circles) drawn.
+
+    vertices (V, 3) mm, markers (M, 3) mm in the view's world; face_vertices (R,) template vertex ids."""
+    import cv2
+
+    img = np.ascontiguousarray(view.image[..., ::-1]).copy()
+    cam = view.camera
+    pts = cam.project(vertices[face_vertices[::7]])
+    for u, v in pts[np.isfinite(pts).all(1)]:
+        cv2.circle(img, (int(round(u)), int(round(v))), 1, (0, 200, 0), -1)
+    mk = cam.project(markers)
+    for u, v in mk[np.isfinite(mk).all(1)]:
+        cv2.circle(img, (int(round(u)), int(round(v))), 4, (0, 0, 255), 1)
+    with atomic_path(Path(path), suffix=".png") as tmp:
+        cv2.imwrite(str(tmp), img)
