@@ -87,11 +87,42 @@ def test_stage_fragment_has_no_ground_truth_keys_and_the_evaluation_has_them(ses
 def test_metrics_against_ground_truth(session):
     m, gt = session["metrics"], session["gt"]
     assert m["objective_monotone"] is True
+    obj = json.loads((session["out"] / "objective.json").read_text())["objective"]
+    assert m["residual_final_mm"] == obj[-1]["rms_unweighted_mm"]
+    assert m["residual_final_weighted_mm"] == obj[-1]["rms_mm"]
     assert m["residual_reduction"] >= 0.5
     assert m["heldout_residual_reduction"] >= 0.4
     assert gt["shape_error_reduction"] >= 0.3
     assert gt["weight_mae"] <= 0.05
     assert gt["min_shape_cosine"] >= 0.9
+
+
+def test_residuals_are_headlined_unweighted_with_the_weighted_ones_beside():
+    """``residual_*`` are the plain RMS over the confident vertices (objective.json's ``rms_unweighted_mm``),
+    ``*_weighted`` the confidence-weighted RMS of the EM's data term (``rms_mm``); same for held-out frames.
+    Confidences below 1 on half the vertices make the two differ."""
+    from rigbuild.personalize.em import PersonalizationResult
+    from rigbuild.personalize.stage import stage_metrics
+
+    obj = [{"iteration": 0, "total": 10.0, "rms_mm": 0.8, "rms_unweighted_mm": 1.0},
+           {"iteration": 3, "total": 4.0, "rms_mm": 0.2, "rms_unweighted_mm": 0.5}]
+    res = PersonalizationResult(neutral=np.zeros((3, 3)), deltas=np.zeros((1, 3, 3)), weights=np.zeros((2, 1)),
+                                rotations=np.zeros((2, 3, 3)), translations=np.zeros((2, 3)),
+                                kept=np.array([True, True]), objective=obj, residual_initial_mm=0.8,
+                                residual_final_mm=0.2, residual_initial_unweighted_mm=1.0,
+                                residual_final_unweighted_mm=0.5, n_free_variables=9,
+                                timings={"total_s": 1.0, "qp_median_ms": 0.1})
+    ho = {"initial": {"rms_mm": 0.4, "rms_unweighted_mm": 2.0}, "final": {"rms_mm": 0.1, "rms_unweighted_mm": 1.5}}
+    m = stage_metrics(res, ho)
+    assert m["residual_initial_mm"] == 1.0 and m["residual_final_mm"] == 0.5
+    assert m["residual_reduction"] == pytest.approx(0.5)
+    assert m["residual_initial_weighted_mm"] == 0.8 and m["residual_final_weighted_mm"] == 0.2
+    assert m["residual_reduction_weighted"] == pytest.approx(0.75)
+    assert m["heldout_residual_initial_mm"] == 2.0 and m["heldout_residual_final_mm"] == 1.5
+    assert m["heldout_residual_reduction"] == pytest.approx(0.25)
+    assert m["heldout_residual_initial_weighted_mm"] == 0.4 and m["heldout_residual_final_weighted_mm"] == 0.1
+    assert m["heldout_residual_reduction_weighted"] == pytest.approx(0.75)
+    assert not any(k.endswith("unweighted") or "_unweighted_" in k for k in m)
 
 
 def test_evaluation_reads_only_the_declared_ground_truth(session, tmp_path):

@@ -779,11 +779,41 @@ def test_metric_prefixes_primary_variant():
     from rigbuild.retarget.methods import metric_prefixes
 
     assert metric_prefixes("ribera_fit") == ["ribera_fit", "ribera"]
-    assert metric_prefixes("ribera") == ["ribera_faithful"]
-    assert metric_prefixes("ribera", primary="ribera") == ["ribera_faithful", "ribera"]
+    assert metric_prefixes("ribera") == ["ribera_paper"]
+    assert metric_prefixes("ribera", primary="ribera") == ["ribera_paper", "ribera"]
     assert metric_prefixes("rbf") == ["rbf_baseline"]
     with pytest.raises(InputError, match="primary 'rbf'"):
         metric_prefixes("rbf", primary="rbf")
+
+
+def test_paper_method_runs_the_papers_constants_whatever_the_config_says():
+    """``ribera`` (reported as ``ribera_paper``) runs sec. 4/5's constants (alpha 0.01, beta 0.1, r 15, mu 0.3,
+    lambda 0.6 for cm), eq. 13's E_CEG, the sec. 4.4 RBF guesses, no weight bounds, no residual rigid fit and
+    no low-pass, whatever the block overrides; the options beside it keep the block's values."""
+    from rigbuild.retarget.params import (PAPER_ALPHA, PAPER_BETA, PAPER_LAMBDA_CM, PAPER_MU, PAPER_R,
+                                          RetargetParams, TransferParams, from_config)
+
+    block = {"alpha": 0.5, "beta": 2.0, "r": 3.0, "ceg_reference": "rbf", "guess": "deformation", "mu": 1.0,
+             "lambda_cm": 0.006, "bounds": [0, 1], "rigid": "joint", "marker_lowpass_hz": 5.0, "fit_alpha": 10.0,
+             "preview_frames": 2}
+    p = from_config({"ribera": block}).ribera
+    tp, rp = p.transfer_params("ribera"), p.retarget_params("ribera")
+    assert (tp.alpha, tp.beta, tp.r) == (PAPER_ALPHA, PAPER_BETA, PAPER_R) == (0.01, 0.1, 15.0)
+    assert tp.ceg_reference == "character" and tp.guess == "rbf" and tp.match == TransferParams().match
+    assert (rp.mu, rp.lambda_cm, rp.bounds, rp.rigid) == (PAPER_MU, PAPER_LAMBDA_CM, None, "fixed")
+    assert (rp.mu, rp.lambda_cm) == (0.3, 0.6) and rp.lambda_mm == pytest.approx(60.0)
+    q = p.for_method("ribera")
+    assert q.marker_lowpass_hz is None and q.preview_frames == 2 and q.primary == p.primary
+    for method in ("ribera_fit", "ribera_activation", "rbf", "deformation"):
+        assert p.for_method(method) is p
+        tp, rp = p.transfer_params(method), p.retarget_params(method)
+        assert (tp.alpha, tp.beta, tp.r, tp.ceg_reference, tp.fit_alpha) == (0.5, 2.0, 3.0, "rbf", 10.0)
+        assert (rp.mu, rp.lambda_cm, rp.bounds, rp.rigid) == (1.0, 0.006, (0, 1), "joint")
+    assert p.retarget_params() == p.retarget_params("ribera_fit")
+    # the defaults already are the paper's except the bounds, the rigid fit and the guesses' source
+    d = from_config(None).ribera
+    assert d.retarget_params("ribera") == RetargetParams(bounds=None, rigid="fixed")
+    assert d.transfer_params("ribera") == TransferParams()
 
 
 def test_params_defaults_have_one_home_and_unknown_keys_fail():

@@ -80,8 +80,9 @@ def test_ground_truth_tracking_metrics_from_files_exact(tmp_path):
 
 
 def test_ground_truth_tracking_metrics_evaluate_the_observed_face(tmp_path):
-    """A face-region triangle that faces away from every camera is left out of the official errors (no camera
-    measures it) and counted in the mask_* errors; vertex counts and fractions exact."""
+    """A face-region triangle that faces away from every camera counts in the headline errors (the whole face
+    mask) and is left out of the visible_* errors (no camera measures it); vertex counts and fractions exact,
+    per session and per sequence."""
     from rigbuild.camera import Camera, look_at
     from rigbuild.eval.tracking import ground_truth_tracking_metrics, observed_face_vertices
     from rigbuild.io.cameras import write_cameras
@@ -105,12 +106,19 @@ def test_ground_truth_tracking_metrics_evaluate_the_observed_face(tmp_path):
     np.savez(gt / "rom" / "rom00.npz", vertices=truth.astype(np.float32), frames=np.array([0, 1]))
     tracked = truth.copy()
     tracked[:, 4:] += [0, 0, 0.7]  # the unseen triangle is off by 0.7 mm, the seen square exact
-    values, _ = ground_truth_tracking_metrics(gt, tmp_path / "cameras.json", F, np.arange(7), tracked[0],
+    values, per = ground_truth_tracking_metrics(gt, tmp_path / "cameras.json", F, np.arange(7), tracked[0],
                                               ("rom00", 0), {"rom00": (tracked, np.array([0, 1]))})
     assert values["observed_face_vertices"] == 4
     assert values["observed_face_fraction"] == pytest.approx(4 / 7)
-    assert values["mean_error_mm"] == pytest.approx(0.0, abs=1e-5)
-    assert values["end_drift_mm"] == pytest.approx(0.0, abs=1e-5)
-    assert values["mask_mean_error_mm"] == pytest.approx(0.3, abs=1e-5)
-    assert values["mask_neutral_error_mm"] == pytest.approx(0.3, abs=1e-5)
-    assert values["neutral_error_mm"] == pytest.approx(0.0, abs=1e-5)
+    # whole mask: 3 of the 7 vertices off by 0.7 mm in every frame
+    for key in ("mean_error_mm", "p95_error_mm", "end_drift_mm", "neutral_error_mm"):
+        expected = 0.7 if key == "p95_error_mm" else 0.3
+        assert values[key] == pytest.approx(expected, abs=1e-5), key
+        assert values[f"visible_{key}"] == pytest.approx(0.0, abs=1e-5), key
+    assert values["corr_mean_error_mm"] > 0.2 and values["visible_corr_mean_error_mm"] == pytest.approx(0.0, abs=1e-5)
+    assert not any(k.startswith("mask_") for k in values)
+    seq = per["rom00"]
+    assert seq["mean_error_mm"] == pytest.approx(0.3, abs=1e-5) and seq["end_error_mm"] == pytest.approx(0.3, abs=1e-5)
+    assert seq["visible_mean_error_mm"] == pytest.approx(0.0, abs=1e-5)
+    assert seq["visible_end_error_mm"] == pytest.approx(0.0, abs=1e-5)
+    assert seq["per_frame_mean_mm"] == pytest.approx([0.3, 0.3], abs=1e-5)

@@ -7,10 +7,12 @@ Rule ``eval_personalize`` (:func:`run_eval_personalize`) reads the personalize s
 Metrics (``personalization.<key>`` in metrics.json; the residuals come from the stage itself):
 
 - ``residual_reduction``: ``1 - rms_personalized / rms_initial`` of the fit residual on the fitting
-  frames (weights and rigid motion fitted to each rig; per-vertex distances weighted by the tracking
-  confidence M as in the data term of eq. 3, ``sqrt(sum M^2 d^2 / sum M^2)``, mm; the plain RMS on
-  ground-truth meshes, whose confidence is 1; the stage also reports ``*_unweighted``);
-- ``heldout_residual_reduction``: the same on held-out frames not used for the shape update;
+  frames (weights and rigid motion fitted to each rig; the plain RMS of the per-vertex distances over the
+  confident vertices, mm); the stage reports beside it ``residual_reduction_weighted``, the distances
+  weighted by the tracking confidence M as in the data term of eq. 3, ``sqrt(sum M^2 d^2 / sum M^2)``
+  (the two agree on ground-truth meshes, whose confidence is 1);
+- ``heldout_residual_reduction`` (and ``*_weighted``): the same on held-out frames not used for the shape
+  update;
 - ``shape_error_reduction``: ``1 - rms(D - D_gt) / rms(D* - D_gt)`` over the face region (mm);
 - ``weight_mae``: mean |w - w_gt| over all fitting frames and shapes;
 - ``min_shape_cosine``: min over shapes of the cosine between the personalized and the ground-truth

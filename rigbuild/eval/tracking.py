@@ -1,11 +1,14 @@
 """Tracking accuracy against ground truth (synthetic sessions only; the tracking stage never calls this).
 
-The evaluated region is the template's face region **as the capture sees it**: face-region vertices that at
-least two cameras see on the ground-truth neutral (in the image, facing the camera, not occluded:
-:func:`rigbuild.eval.reconstruction.visible_counts`, the same rule the reconstruction metrics use). The rest
-of the face mask (the lip linings inside the closed mouth, the eyelid linings, the nostrils, under the chin
-and behind the jaw) is never in a camera's view at the neutral, so no tracker measures it;
-its vertices follow the Laplacian prior. The whole mask is reported too (``mask_*``).
+The headline region is the template's **whole face mask** (``face_vertices``: the ICT face region, eye and
+mouth linings included): ``tracking.mean_error_mm``, ``p95_error_mm``, ``end_drift_mm``,
+``neutral_error_mm`` and their ``corr_*`` forms, per session and per sequence. Parts of the mask (the lip
+linings inside the closed mouth, the eyelid linings, the nostrils, under the chin and behind the jaw) are in
+no camera's view at the neutral and follow the tracker's Laplacian prior; a user sees them all the same.
+
+The region **as the capture sees it** is reported beside it with the prefix ``visible_``: face-mask vertices
+that at least two cameras see on the ground-truth neutral (in the image, facing the camera, not occluded:
+:func:`rigbuild.eval.reconstruction.visible_counts`, the same rule the reconstruction metrics use).
 
 Two error kinds over those vertices:
 
@@ -126,12 +129,13 @@ def ground_truth_tracking_metrics(gt_dir, cameras, faces: np.ndarray, face_verti
     calibrated ``cameras.json`` (estimates are mapped into the ground-truth world by the camera-centre
     similarity); faces (T, 3), face_vertices (R,) of the template; neutral (V, 3) mm: the registered neutral,
     taken at ``neutral_at`` = (sequence, frame); sequences : name -> (tracked vertices (F, V, 3) mm, frame ids
-    (F,)); min_cameras : a face-region vertex is evaluated when that many true cameras see it on the true
-    neutral (:func:`observed_face_vertices`).
-    Returns (session values, per-sequence summaries without the error arrays). Session values:
-    ``neutral_error_mm`` + :func:`session_tracking_metrics` over the observed face region,
-    ``observed_face_vertices`` / ``observed_face_fraction``, and the same errors over the whole face mask
-    prefixed ``mask_``.
+    (F,)); min_cameras : a face-region vertex is in the visible region (the ``visible_*`` values) when that many
+    true cameras see it on the true neutral (:func:`observed_face_vertices`).
+    Returns (session values, per-sequence summaries without the error arrays). Session values over the
+    whole face mask ``face_vertices``: ``neutral_error_mm`` + :func:`session_tracking_metrics`; the same over
+    the observed region prefixed ``visible_``; ``observed_face_vertices`` / ``observed_face_fraction``.
+    Per sequence: :func:`tracking_summary`'s scalars and curves over the whole mask, and
+    ``visible_{mean,p95,end}_error_mm`` over the observed region.
     """
     from pathlib import Path
 
@@ -144,22 +148,23 @@ def ground_truth_tracking_metrics(gt_dir, cameras, faces: np.ndarray, face_verti
     face_vertices = np.asarray(face_vertices, np.int64)
     observed = observed_face_vertices(truth_neutral, faces, read_cameras(Path(gt_dir) / "cameras.json"),
                                       face_vertices, min_cameras)
-    values = {"neutral_error_mm": float(vertex_errors(neutral_gt[None], truth_neutral[None], observed).mean()),
-              "mask_neutral_error_mm": float(vertex_errors(neutral_gt[None], truth_neutral[None],
-                                                           face_vertices).mean()),
+    values = {"neutral_error_mm": float(vertex_errors(neutral_gt[None], truth_neutral[None],
+                                                      face_vertices).mean()),
+              "visible_neutral_error_mm": float(vertex_errors(neutral_gt[None], truth_neutral[None],
+                                                              observed).mean()),
               "observed_face_vertices": int(observed.size),
               "observed_face_fraction": float(observed.size / max(face_vertices.size, 1))}
-    summaries, mask_summaries = {}, {}
+    summaries, visible_summaries = {}, {}
     for name, (V, frame_ids) in sequences.items():
         tracked = points_to_ground_truth(np.asarray(V, np.float64), sim)
         truth = _truth_frames(gt_dir, name, frame_ids)
-        summaries[name] = tracking_summary(tracked, truth, faces, observed, neutral_gt, truth_neutral)
-        mask_summaries[name] = tracking_summary(tracked, truth, faces, face_vertices, neutral_gt, truth_neutral)
+        summaries[name] = tracking_summary(tracked, truth, faces, face_vertices, neutral_gt, truth_neutral)
+        visible_summaries[name] = tracking_summary(tracked, truth, faces, observed, neutral_gt, truth_neutral)
     values.update(session_tracking_metrics(summaries))
-    values.update({f"mask_{k}": v for k, v in session_tracking_metrics(mask_summaries).items()})
+    values.update({f"visible_{k}": v for k, v in session_tracking_metrics(visible_summaries).items()})
     per = {n: {k: v for k, v in s.items() if not k.endswith("errors")} for n, s in summaries.items()}
-    for n, s in mask_summaries.items():
-        per[n].update({f"mask_{k}": s[k] for k in ("mean_error_mm", "p95_error_mm", "end_error_mm")})
+    for n, s in visible_summaries.items():
+        per[n].update({f"visible_{k}": s[k] for k in ("mean_error_mm", "p95_error_mm", "end_error_mm")})
     return values, per
 
 
@@ -173,8 +178,8 @@ def run_eval_tracking(session_dir, gt_cameras, gt_sequences, cameras, neutral, v
     cameras.json; neutral : the tracked ``neutral.npz``; vertices : each sequence's tracked
     ``vertices.npz`` (``track/<seq>/vertices.npz``); track_params : ``config["params"]["track"]`` (its
     ``template_rig``). The fragment holds :func:`ground_truth_tracking_metrics`' session values and, under
-    ``sequences.<seq>``, its per-sequence scalars; ``detail_path`` (JSON) gets the per-frame curves
-    (``per_frame_mean_mm``, ``corr_per_frame_mean_mm`` per sequence).
+    ``sequences.<seq>``, its per-sequence scalars; ``detail_path`` (JSON) gets the per-frame curves over the
+    whole mask (``per_frame_mean_mm``, ``corr_per_frame_mean_mm`` per sequence).
     """
     from pathlib import Path
 

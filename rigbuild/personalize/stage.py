@@ -191,15 +191,17 @@ def write_figures(out: Path, template: Rig, b0: np.ndarray, Dstar: np.ndarray, r
 
 
 def stage_metrics(res: PersonalizationResult, ho: dict) -> dict:
-    """The stage's metrics (``personalization.<key>``): fit residuals (mm; confidence-weighted and
-    ``*_unweighted``) on the fitting and, with ``ho``, the held-out frames, EM convergence and timings."""
+    """The stage's metrics (``personalization.<key>``): fit residuals (mm) on the fitting and, with ``ho``, the
+    held-out frames, EM convergence and timings. The residuals are the plain RMS over the confident vertices
+    (``residual_*``, ``heldout_residual_*``: the headline) and weighted by the tracking confidence as the EM's
+    data term (``*_weighted``)."""
     metrics = {
-        "residual_initial_mm": res.residual_initial_mm,
-        "residual_final_mm": res.residual_final_mm,
-        "residual_reduction": 1.0 - res.residual_final_mm / res.residual_initial_mm,
-        "residual_initial_unweighted_mm": res.residual_initial_unweighted_mm,
-        "residual_final_unweighted_mm": res.residual_final_unweighted_mm,
-        "residual_reduction_unweighted": 1.0 - res.residual_final_unweighted_mm / res.residual_initial_unweighted_mm,
+        "residual_initial_mm": res.residual_initial_unweighted_mm,
+        "residual_final_mm": res.residual_final_unweighted_mm,
+        "residual_reduction": 1.0 - res.residual_final_unweighted_mm / res.residual_initial_unweighted_mm,
+        "residual_initial_weighted_mm": res.residual_initial_mm,
+        "residual_final_weighted_mm": res.residual_final_mm,
+        "residual_reduction_weighted": 1.0 - res.residual_final_mm / res.residual_initial_mm,
         "em_iterations": int(res.objective[-1]["iteration"]),
         "objective_initial": res.objective[0]["total"],
         "objective_final": res.objective[-1]["total"],
@@ -211,12 +213,13 @@ def stage_metrics(res: PersonalizationResult, ho: dict) -> dict:
         "qp_median_ms": res.timings["qp_median_ms"],
     }
     if ho:
-        metrics.update(heldout_residual_initial_mm=ho["initial"]["rms_mm"], heldout_residual_final_mm=ho["final"]["rms_mm"],
-                       heldout_residual_reduction=1.0 - ho["final"]["rms_mm"] / ho["initial"]["rms_mm"],
-                       heldout_residual_initial_unweighted_mm=ho["initial"]["rms_unweighted_mm"],
-                       heldout_residual_final_unweighted_mm=ho["final"]["rms_unweighted_mm"],
-                       heldout_residual_reduction_unweighted=1.0 - ho["final"]["rms_unweighted_mm"]
-                       / ho["initial"]["rms_unweighted_mm"])
+        metrics.update(heldout_residual_initial_mm=ho["initial"]["rms_unweighted_mm"],
+                       heldout_residual_final_mm=ho["final"]["rms_unweighted_mm"],
+                       heldout_residual_reduction=1.0 - ho["final"]["rms_unweighted_mm"]
+                       / ho["initial"]["rms_unweighted_mm"],
+                       heldout_residual_initial_weighted_mm=ho["initial"]["rms_mm"],
+                       heldout_residual_final_weighted_mm=ho["final"]["rms_mm"],
+                       heldout_residual_reduction_weighted=1.0 - ho["final"]["rms_mm"] / ho["initial"]["rms_mm"])
     return metrics
 
 

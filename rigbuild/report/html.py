@@ -1,7 +1,8 @@
 """Build the self-contained HTML session report.
 
-Every stage section shows its numbers from ``metrics.json`` with pass/warn/fail against the thresholds
-(:mod:`rigbuild.report.thresholds`, overridable in the config) and the pictures the stage wrote. Images
+Every stage section shows its headline numbers from ``metrics.json`` (the keys with a threshold,
+:mod:`rigbuild.report.thresholds`, overridable in the config) first, each with pass / warn / fail and its
+limits, the rest folded below them, and the pictures the stage wrote. Images
 are embedded as base64 so the file opens offline; rule timings come from Snakemake ``benchmark:`` files.
 """
 
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from rigbuild.report.thresholds import status
+from rigbuild.report.thresholds import limits_text, missing_headline, rule_for, split_headline, status
 from rigbuild.io.metrics import flatten_metrics
 from rigbuild.progress import progress
 
@@ -60,6 +61,7 @@ td.num{text-align:right;font-variant-numeric:tabular-nums}
 figure{display:inline-block;margin:6px;vertical-align:top} figure img{max-width:560px;border:1px solid #ccc}
 figcaption{font-size:12px;color:#555;max-width:560px;word-break:break-all}
 .summary span{margin-right:1em}
+details{margin:.5em 0} summary{cursor:pointer;color:#444}
 """
 
 
@@ -69,21 +71,44 @@ def _img_tag(path: Path) -> str:
     return f'<img alt="{html.escape(path.name)}" src="data:{mime};base64,{data}">'
 
 
+def _row(key: str, value: Any, thresholds: Mapping | None, with_limits: bool) -> tuple[str, str]:
+    """(status, one table row) of a flat metric; ``value`` None: a headline the run did not measure."""
+    if value is None:
+        st, text = "", "<em>not measured</em>"
+    else:
+        st = status(key, value, thresholds)
+        text = f"{value:.4g}" if isinstance(value, float) else html.escape(str(value))
+    badge = f'<span class="badge {st}">{st}</span>' if st else ""
+    limits = f"<td>{html.escape(limits_text(rule_for(key, thresholds), '≤', '≥'))}</td>" if with_limits else ""
+    return st, f'<tr><td>{html.escape(key)}</td><td class="num">{text}</td><td>{badge}</td>{limits}</tr>'
+
+
 def _metric_rows(metrics: Mapping[str, Any], stages: Sequence[str], thresholds: Mapping | None) -> tuple[str, dict]:
+    """A section's metrics: the headline keys (those with a threshold, :func:`split_headline`) first with their
+    status and limits, headline goals the run has no number for marked "not measured", and every other key
+    folded in a ``<details>`` table. Returns (HTML, counts of pass / warn / fail / missing headline keys)."""
     flat = flatten_metrics({k: v for k, v in metrics.items() if k in stages})
-    counts = {"pass": 0, "warn": 0, "fail": 0}
+    counts = {"pass": 0, "warn": 0, "fail": 0, "missing": 0}
+    if not flat:
+        return "<p><em>No metrics for this stage.</em></p>", counts
+    head, rest = split_headline(flat, thresholds)
+    missing = missing_headline(flat, tuple(f"{s}." for s in stages), thresholds)
     rows = []
-    for key in sorted(flat):
-        v = flat[key]
-        st = status(key, v, thresholds)
+    for key in head + missing:
+        st, row = _row(key, flat.get(key) if key in head else None, thresholds, True)
         if st:
             counts[st] += 1
-        text = f"{v:.4g}" if isinstance(v, float) else html.escape(str(v))
-        badge = f'<span class="badge {st}">{st}</span>' if st else ""
-        rows.append(f'<tr><td>{html.escape(key)}</td><td class="num">{text}</td><td>{badge}</td></tr>')
-    if not rows:
-        return "<p><em>No metrics for this stage.</em></p>", counts
-    return "<table><tr><th>metric</th><th>value</th><th>status</th></tr>" + "".join(rows) + "</table>", counts
+        counts["missing"] += key in missing
+        rows.append(row)
+    out = ""
+    if rows:
+        out = ('<table class="headline"><tr><th>headline metric</th><th>value</th><th>status</th><th>limits</th></tr>'
+               + "".join(rows) + "</table>")
+    if rest:
+        body = "".join(_row(k, flat[k], thresholds, False)[1] for k in rest)
+        out += (f"<details><summary>{len(rest)} more metrics</summary><table><tr><th>metric</th><th>value</th>"
+                f"<th>status</th></tr>{body}</table></details>")
+    return out, counts
 
 
 def _timings(results_dir: Path) -> str:
@@ -106,7 +131,7 @@ def build_report(results_dir: str | os.PathLike, session: str, metrics: Mapping[
                  thresholds: Mapping | None = None) -> str:
     """The report HTML text for one session's results folder."""
     results_dir = Path(results_dir)
-    parts, totals = [], {"pass": 0, "warn": 0, "fail": 0}
+    parts, totals = [], {"pass": 0, "warn": 0, "fail": 0, "missing": 0}
     nav = []
     for sec in progress(SECTIONS, "report sections", unit="section"):
         stages = [sec.stage] if isinstance(sec.stage, str) else list(sec.stage)
@@ -127,7 +152,8 @@ def build_report(results_dir: str | os.PathLike, session: str, metrics: Mapping[
     nav.append('<a href="#timings">Timings</a>')
     overall = "fail" if totals["fail"] else "warn" if totals["warn"] else "pass"
     summary = (f'<p class="summary"><span class="badge {overall}">session {overall}</span>'
-               f'<span>{totals["pass"]} pass</span><span>{totals["warn"]} warn</span><span>{totals["fail"]} fail</span></p>')
+               f'<span>{totals["pass"]} pass</span><span>{totals["warn"]} warn</span><span>{totals["fail"]} fail</span>'
+               f'<span>{totals["missing"]} not measured</span></p>')
     return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>rigbuild report: {html.escape(session)}</title>"
             f"<style>{_CSS}</style></head><body><h1>rigbuild session report: {html.escape(session)}</h1>"
             f"<p class='sub'>{' · '.join(nav)}</p>{summary}{''.join(parts)}</body></html>\n")

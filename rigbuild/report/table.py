@@ -1,26 +1,27 @@
-"""A plain-text metrics table with pass/warn/fail marks (``rigbuild eval``)."""
+"""A plain-text metrics table with pass/warn/fail marks and limits (``rigbuild eval``)."""
 
 from __future__ import annotations
 
 from typing import Any, Mapping
 
-from rigbuild.report.thresholds import status
 from rigbuild.io.metrics import flatten_metrics
+from rigbuild.report.thresholds import limits_text, rule_for, split_headline, status
 
 
 def format_metrics_table(metrics: Mapping[str, Any], thresholds: Mapping | None = None) -> tuple[str, int]:
-    """Return (table text, number of failing metrics)."""
+    """Return (table text, number of failing metrics): the headline keys (those with a threshold) first in
+    the threshold table's order with their status and limits, then every other key sorted."""
     flat = flatten_metrics(metrics)
+    head, rest = split_headline(flat, thresholds)
     width = max((len(k) for k in flat), default=10)
-    lines = [f"{'metric':<{width}}  {'value':>12}  status", "-" * (width + 22)]
+    lines = [f"{'metric':<{width}}  {'value':>12}  {'status':<6}  limits", "-" * (width + 44)]
     n_fail = 0
-    for key in sorted(flat):
+    for key in head + rest:
         value = flat[key]
         st = status(key, value, thresholds)
         n_fail += st == "fail"
-        if isinstance(value, float):
-            text = f"{value:12.4g}"
-        else:
-            text = f"{str(value):>12}"
-        lines.append(f"{key:<{width}}  {text}  {st}")
+        text = f"{value:12.4g}" if isinstance(value, float) else f"{str(value):>12}"
+        lines.append(f"{key:<{width}}  {text}  {st:<6}  {limits_text(rule_for(key, thresholds))}".rstrip())
+        if key in head and key == head[-1] and rest:
+            lines.append("-" * (width + 44))
     return "\n".join(lines), n_fail

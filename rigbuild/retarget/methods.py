@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-#: methods of rule ``retarget_ribera`` (Ribera et al. 2017 as written, its activation-aware and ROM-fit
-#: E_Match options, the RBF-transfer and deformation-transfer baselines)
+#: methods of rule ``retarget_ribera`` (Ribera et al. 2017 as written with the paper's constants, its
+#: activation-aware and ROM-fit E_Match options, the RBF-transfer and deformation-transfer baselines)
 RIBERA_METHODS = ["ribera", "ribera_activation", "ribera_fit", "rbf", "deformation"]
 #: the method of rule ``retarget_seol`` (Seol et al. 2012 spacetime expression cloning)
 SEOL_METHOD = "seol"
@@ -24,8 +24,9 @@ PRIMARY_RIBERA_METHOD = "ribera_fit"
 #: the metric prefix under which the primary variant is reported a second time
 PRIMARY_PREFIX = "ribera"
 
-#: method -> metric prefix of its own numbers (``retarget.<prefix>.<character>.*``)
-METHOD_KEYS = {"ribera": "ribera_faithful", "ribera_activation": "ribera_activation", "ribera_fit": "ribera_fit",
+#: method -> metric prefix of its own numbers (``retarget.<prefix>.<character>.*``); ``ribera`` runs the paper
+#: with its own constants (:meth:`rigbuild.retarget.params.RiberaParams.for_method`): ``ribera_paper``
+METHOD_KEYS = {"ribera": "ribera_paper", "ribera_activation": "ribera_activation", "ribera_fit": "ribera_fit",
                "rbf": "rbf_baseline", "deformation": "deformation_baseline", "seol": "seol"}
 #: Seol job: result (spacetime solution or sec. 7 baseline) -> metric prefix
 SEOL_RESULT_KEYS = {

@@ -9,7 +9,10 @@ The block has two sub-blocks, ``ribera`` (:class:`RiberaParams`, rule ``retarget
 The solver-level parameter classes of the Ribera method, :class:`TransferParams` (sec. 4) and
 :class:`RetargetParams` (sec. 5), live here too: their fields hold the paper's defaults, and
 :class:`RiberaParams` takes its defaults from them (``bounds`` excepted: the pipeline bounds the weights
-to [0, 1], the solver does not by default). Plain dataclasses: cheap to import.
+to [0, 1], the solver does not by default). The method ``ribera`` (:data:`PAPER_METHOD`, reported as
+``retarget.ribera_paper``) runs with the paper's constants whatever the block says
+(:meth:`RiberaParams.for_method`); the block's values drive the options beside it (``ribera_activation``,
+``ribera_fit``, the baselines). Plain dataclasses: cheap to import.
 """
 
 from __future__ import annotations
@@ -31,6 +34,10 @@ PAPER_MU = 0.3
 PAPER_LAMBDA_CM = 0.6
 #: squared-length factor between the paper's cm and our mm
 CM2_TO_MM2 = 100.0
+
+#: the method that runs Ribera et al. 2017 as written, with the paper's own constants whatever
+#: ``params.retarget.ribera`` says (:meth:`RiberaParams.for_method`; metric key ``ribera_paper``)
+PAPER_METHOD = "ribera"
 
 #: initial guesses g_k of E_Mesh (``TransferParams.guess``)
 GUESSES = ("rbf", "deformation")
@@ -144,16 +151,36 @@ class RiberaParams:
     primary: str = PRIMARY_RIBERA_METHOD
     marker_lowpass_hz: Optional[float] = None
 
-    def transfer_params(self, method: str) -> TransferParams:
-        """The transfer parameters of ``method`` (``ribera_fit`` takes ``fit_guess``)."""
-        return TransferParams(alpha=float(self.alpha), beta=float(self.beta), r=float(self.r),
-                              ceg_reference=str(self.ceg_reference),
-                              guess=str(self.fit_guess if method == "ribera_fit" else self.guess),
-                              fit_alpha=float(self.fit_alpha), fit_lambda_cm=float(self.fit_lambda_cm))
+    def for_method(self, method: str) -> "RiberaParams":
+        """The parameters ``method`` runs with: these, except for :data:`PAPER_METHOD` (``ribera``), which
+        runs the paper as written whatever the config says: alpha 0.01, beta 0.1, r 15 (sec. 4), E_CEG as
+        eq. 13 (``ceg_reference: character``), the RBF guesses of sec. 4.4 (``guess: rbf``), mu 0.3 and
+        lambda 0.6 for cm (sec. 5), no weight bounds (eq. 16 has none; sec. 3 argues that bounding the weights
+        to [0, 1] does not make expressions valid), E_Fit on the stabilized frame (``rigid: fixed``) and no
+        marker low-pass. The job's own settings (``allow_empty_frames``, ``preview_frames``, ``primary``) and
+        the other variants' fields are kept."""
+        if method != PAPER_METHOD:
+            return self
+        from dataclasses import replace
 
-    def retarget_params(self) -> RetargetParams:
-        bounds = None if self.bounds is None else tuple(self.bounds)
-        return RetargetParams(mu=float(self.mu), lambda_cm=float(self.lambda_cm), bounds=bounds, rigid=str(self.rigid))
+        return replace(self, alpha=PAPER_ALPHA, beta=PAPER_BETA, r=PAPER_R, ceg_reference="character",
+                       guess="rbf", mu=PAPER_MU, lambda_cm=PAPER_LAMBDA_CM, bounds=None, rigid="fixed",
+                       marker_lowpass_hz=None)
+
+    def transfer_params(self, method: str) -> TransferParams:
+        """The transfer parameters of ``method`` (``ribera_fit`` takes ``fit_guess``; ``ribera`` the paper's,
+        :meth:`for_method`)."""
+        q = self.for_method(method)
+        return TransferParams(alpha=float(q.alpha), beta=float(q.beta), r=float(q.r),
+                              ceg_reference=str(q.ceg_reference),
+                              guess=str(q.fit_guess if method == "ribera_fit" else q.guess),
+                              fit_alpha=float(q.fit_alpha), fit_lambda_cm=float(q.fit_lambda_cm))
+
+    def retarget_params(self, method: str | None = None) -> RetargetParams:
+        """The section-5 parameters of ``method`` (``ribera``: the paper's, :meth:`for_method`; None: these)."""
+        q = self if method is None else self.for_method(method)
+        bounds = None if q.bounds is None else tuple(q.bounds)
+        return RetargetParams(mu=float(q.mu), lambda_cm=float(q.lambda_cm), bounds=bounds, rigid=str(q.rigid))
 
 
 # ----------------------------------------------------------------------------- Seol et al. 2012

@@ -53,14 +53,16 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
 
     performance : .c3d/.npz markers; training : tracked ROM marker .npz files (``markers`` F x M x 3 mm,
     ``marker_names``); rig_path : character .npz with its marker map; ribera : ``params.retarget.ribera``;
-    neutral_frames : the neutral row of each training file. Writes the outputs named by the keywords; returns
-    the metrics."""
+    neutral_frames : the neutral row of each training file; method ``ribera`` runs with the paper's constants
+    whatever ``ribera`` says (:meth:`~rigbuild.retarget.params.RiberaParams.for_method`; the weight files'
+    ``params`` are the ones it ran with). Writes the outputs named by the keywords; returns the metrics."""
     from rigbuild.retarget.preview import write_preview
     from rigbuild.retarget.run import make_training_set, retarget_performance
 
     p = ribera_from_config(ribera)
     if method not in RIBERA_METHODS:
         raise InputError(f"unknown method '{method}'", path="config", fix=f"use one of {RIBERA_METHODS}")
+    p = p.for_method(method)  # ``ribera``: the paper's constants whatever the config says
     take = read_markers(performance)
     files = list(training)
     takes = [read_markers(f) for f in files]
@@ -70,7 +72,7 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
         raise InputError(f"character '{rig.name}' has no marker map", path=rig_path,
                          fix="build the character with the session's marker set")
     res = retarget_performance(ts, take.markers, take.names, rig, rig.marker_names, rig.marker_vertices, method,
-                               p.transfer_params(method), p.retarget_params(),
+                               p.transfer_params(method), p.retarget_params(method),
                                allow_empty_frames=bool(p.allow_empty_frames), performance_path=performance,
                                map_path=rig_path, workers=int(workers),
                                marker_lowpass_hz=None if p.marker_lowpass_hz is None else float(p.marker_lowpass_hz),
