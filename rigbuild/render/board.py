@@ -106,6 +106,7 @@ def render_board(
     msaa: bool = True,
     backend: str = "auto",
     margin_mm: float | None = None,
+    output: str = "srgb8",
 ) -> np.ndarray:
     """Render a calibration board through ``camera`` (with distortion) on a grey background.
 
@@ -118,10 +119,11 @@ def render_board(
         i.e. a light at the camera, as rig lights are).
     ambient, background, noise_sigma, seed, msaa, backend : as :func:`rigbuild.render.render_mesh`.
     margin_mm : white margin around the squares (None: half a square).
+    output : ``"srgb8"`` (the image with noise) or ``"linear"`` (float32 radiance, white = 1, for a sensor model).
 
     Returns
     -------
-    (H, W, 3) uint8 RGB image.
+    (H, W, 3) uint8 RGB image, or float32 linear radiance with ``output="linear"``.
     """
     from rigbuild.render import render_mesh
 
@@ -134,5 +136,6 @@ def render_board(
     if light_dir is None:
         light_dir = camera.center - centre
     res = render_mesh(camera, mesh, light_dir=light_dir, ambient=ambient, background=background,
-                      noise_sigma=noise_sigma, seed=seed, msaa=msaa, backend=backend, with_geometry=False)
-    return res.color
+                      noise_sigma=noise_sigma, seed=seed, msaa=msaa, backend=backend, with_geometry=False,
+                      output=output)
+    return res.linear if output == "linear" else res.color

@@ -24,12 +24,18 @@ class RenderResult:
     tri_id : (H, W) int32 index of the visible triangle in ``mesh.faces``; -1 on background.
     bary : (H, W, 3) float32 barycentric coordinates of the visible point in that triangle (weights of
         ``faces[tri_id, 0..2]``); 0 on background.
+    linear : (H, W, 3) float32 linear-light radiance before sensor noise and 8-bit conversion (only with
+        ``output="linear"`` or ``"both"``; None otherwise). ``color`` is None with ``output="linear"``.
+    motion_px : (H, W, 2) float32 image displacement (du, dv) of the visible surface point over the
+        exposure, px (only with ``with_motion=True``); NaN on background.
     """
 
-    color: np.ndarray
+    color: np.ndarray | None
     depth: np.ndarray
     tri_id: np.ndarray
     bary: np.ndarray
+    linear: np.ndarray | None = None
+    motion_px: np.ndarray | None = None
 
     @property
     def mask(self) -> np.ndarray:
@@ -347,3 +353,237 @@ def finish_color(linear_rgb: np.ndarray, noise_sigma: float, camera: Camera, see
         rng = noise_rng(camera, seed)
         img = img + rng.standard_normal(img.shape, dtype=np.float32) * np.float32(noise_sigma)
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+# ------------------------------------------------------------------ linear light, lights, shadows
+def srgb_to_linear(x):
+    """sRGB-encoded values in [0, 1] -> linear light (IEC 61966-2-1); float32 in, float32 out."""
+    x = np.asarray(x, dtype=np.float32)
+    return np.where(x <= 0.04045, x / np.float32(12.92),
+                    ((x + np.float32(0.055)) / np.float32(1.055)) ** np.float32(2.4)).astype(np.float32)
+
+
+def linear_to_srgb(x):
+    """Linear light (clipped to [0, 1]) -> sRGB-encoded values in [0, 1], float32."""
+    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
+    return np.where(x <= 0.0031308, x * np.float32(12.92),
+                    np.float32(1.055) * x ** np.float32(1 / 2.4) - np.float32(0.055)).astype(np.float32)
+
+
+def lights_in_camera(camera: Camera, lights) -> list[dict]:
+    """Camera-frame description of each light.
+
+    Returns a list of dicts: ``kind`` (0 ambient, 1 directional, 2 point), ``vec`` (3,) unit direction
+    towards the light or position (mm), ``rad`` (3,) linear irradiance, ``ref2`` squared reference
+    distance (mm^2, point lights), ``shadows``, ``softness`` (mm).
+    """
+    out = []
+    for L in lights:
+        if L.kind == "ambient":
+            vec, kind = np.zeros(3), 0
+        elif L.kind == "directional":
+            d = np.asarray(L.direction, dtype=np.float64)
+            d = d / np.linalg.norm(d)
+            vec, kind = (d if L.rig_mounted else camera.R @ d), 1
+        else:
+            p = np.asarray(L.position, dtype=np.float64)
+            vec, kind = (p if L.rig_mounted else camera.R @ p + camera.t), 2
+        out.append(dict(kind=kind, vec=vec, rad=L.radiance, ref2=float(L.reference_mm) ** 2,
+                        shadows=bool(L.shadows) and kind > 0, softness=float(L.softness_mm)))
+    return out
+
+
+@dataclass
+class ShadowFrame:
+    """Projection of a shadow map (camera frame -> texel coordinates, texel centres at integers).
+
+    ``q = R @ p + t`` (light frame, z along the light's rays, mm); texel ``u = a * q_x / w + cu``,
+    ``v = a * q_y / w + cv`` with ``w = q_z`` (perspective) or 1 (orthographic); the map stores ``q_z``.
+    ``near``/``far``: the light-frame z range of the mesh (mm). ``size``: texels per side.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    a: float
+    cu: float
+    cv: float
+    perspective: bool
+    near: float
+    far: float
+    size: int
+
+    def texel_mm(self, qz):
+        """Texel footprint on a receiver at light depth ``qz`` (mm)."""
+        return qz / self.a if self.perspective else np.full_like(np.asarray(qz, dtype=np.float64), 1.0 / self.a)
+
+
+def shadow_frame(light: dict, verts_cam: np.ndarray, size: int, margin: int = 4) -> ShadowFrame:
+    """Shadow-map frame of one camera-frame light (from :func:`lights_in_camera`) covering ``verts_cam``."""
+    if light["kind"] == 1:
+        z = -light["vec"]
+    else:
+        centre = 0.5 * (verts_cam.min(0) + verts_cam.max(0))
+        z = centre - light["vec"]
+        z = z / np.linalg.norm(z)
+    helper = np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    half = (size - 1) / 2.0
+    if light["kind"] == 1:
+        t = np.zeros(3)
+        q = verts_cam @ R.T
+        lo, hi = q[:, :2].min(0), q[:, :2].max(0)
+        ext = float(max(hi - lo)) * 0.5 + 1e-6
+        a = (half - margin) / ext
+        mid = 0.5 * (lo + hi)
+        cu, cv = half - a * mid[0], half - a * mid[1]
+        near, far = float(q[:, 2].min()), float(q[:, 2].max())
+        return ShadowFrame(R, t, float(a), float(cu), float(cv), False, near, far, size)
+    t = -R @ light["vec"]
+    q = verts_cam @ R.T + t
+    if q[:, 2].min() <= 1e-3:
+        raise ValueError("point light inside or behind the mesh's extent: cannot build its shadow map")
+    tan = float(np.abs(q[:, :2] / q[:, 2:3]).max()) + 1e-9
+    a = (half - margin) / tan
+    return ShadowFrame(R, t, float(a), half, half, True, float(q[:, 2].min()), float(q[:, 2].max()), size)
+
+
+def vogel_taps(n: int = 16) -> np.ndarray:
+    """(n, 2) float32 unit-disk sample offsets (Vogel spiral), area-uniform."""
+    k = np.arange(n, dtype=np.float64)
+    r = np.sqrt((k + 0.5) / n)
+    ang = k * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(ang), r * np.sin(ang)], 1).astype(np.float32)
+
+
+SHADOW_BIAS_CONST = 1.0
+SHADOW_BIAS_SLOPE = 1.5
+
+
+def shadow_visibility(smap: np.ndarray, frame: ShadowFrame, P: np.ndarray, n: np.ndarray, l: np.ndarray,
+                      softness_mm: float, taps: int = 16) -> np.ndarray:
+    """Visibility (N,) in [0, 1] of camera-frame points ``P`` (N, 3) with normals ``n`` towards unit
+    light directions ``l`` (N, 3), by bilinear PCF on ``smap`` ((S, S) float32 light depth, inf empty).
+
+    The numpy twin of the GLSL lookup in :mod:`rigbuild.render.gl`.
+    """
+    q = P @ frame.R.T + frame.t
+    w = q[:, 2] if frame.perspective else 1.0
+    u = frame.a * q[:, 0] / w + frame.cu
+    v = frame.a * q[:, 1] / w + frame.cv
+    tmm = frame.texel_mm(q[:, 2])
+    cos = np.clip(np.einsum("nd,nd->n", n, l), 1e-4, 1.0)
+    tan = np.minimum(np.sqrt(1.0 - cos ** 2) / cos, 10.0)
+    r_tex = softness_mm / tmm
+    bias = tmm * (SHADOW_BIAS_CONST + (SHADOW_BIAS_SLOPE + r_tex) * tan)
+    ref = q[:, 2] - bias
+    S = smap.shape[0]
+    offs = vogel_taps(taps) if softness_mm > 0 else np.zeros((1, 2), np.float32)
+    vis = np.zeros(P.shape[0])
+    for o in offs:
+        uu = u + o[0] * r_tex
+        vv = v + o[1] * r_tex
+        i0 = np.floor(uu)
+        j0 = np.floor(vv)
+        fx, fy = uu - i0, vv - j0
+        i0 = i0.astype(np.int64)
+        j0 = j0.astype(np.int64)
+        acc = np.zeros(P.shape[0])
+        for di, dj, wgt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+            ii, jj = i0 + di, j0 + dj
+            inside = (ii >= 0) & (ii < S) & (jj >= 0) & (jj < S)
+            d = np.full(P.shape[0], np.inf)
+            d[inside] = smap[jj[inside], ii[inside]]
+            acc += wgt * (ref <= d)
+        vis += acc
+    return vis / len(offs)
+
+
+def ggx_shade(albedo: np.ndarray, n: np.ndarray, P: np.ndarray, f0: np.ndarray, rough: np.ndarray,
+              lights: list[dict], visibility: list) -> np.ndarray:
+    """Linear radiance (N, 3) of camera-frame points (the model in :mod:`rigbuild.render.lights`).
+
+    albedo : (N, 3) linear albedo; n : (N, 3) unit normals facing the camera; P : (N, 3) points, mm;
+    f0, rough : (N,) F0 and perceptual roughness; lights : from :func:`lights_in_camera`;
+    visibility : per light, (N,) shadow visibility or None (fully lit).
+    """
+    v = -P / np.maximum(np.linalg.norm(P, axis=1, keepdims=True), 1e-12)
+    nv = np.clip(np.einsum("nd,nd->n", n, v), 1e-4, 1.0)
+    a = np.maximum(rough, 0.02) ** 2
+    a2 = a * a
+    out = np.zeros_like(albedo, dtype=np.float64)
+    for L, vis in zip(lights, visibility):
+        if L["kind"] == 0:
+            out += albedo * L["rad"]
+            continue
+        if L["kind"] == 1:
+            l = np.broadcast_to(L["vec"], P.shape)
+            E = np.broadcast_to(L["rad"], P.shape)
+        else:
+            d = L["vec"] - P
+            dist2 = np.einsum("nd,nd->n", d, d)
+            l = d / np.sqrt(dist2)[:, None]
+            E = L["rad"][None, :] * (L["ref2"] / dist2)[:, None]
+        nl = np.einsum("nd,nd->n", n, l)
+        lit = nl > 0
+        nl = np.maximum(nl, 0.0)
+        h = l + v
+        h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-12)
+        nh = np.clip(np.einsum("nd,nd->n", n, h), 0.0, 1.0)
+        vh = np.clip(np.einsum("nd,nd->n", v, h), 0.0, 1.0)
+        D = a2 / (np.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2)
+        nlc = np.maximum(nl, 1e-4)
+        Vis = 0.5 / (nlc * np.sqrt(nv * nv * (1.0 - a2) + a2) + nv * np.sqrt(nlc * nlc * (1.0 - a2) + a2))
+        F = f0 + (1.0 - f0) * (1.0 - vh) ** 5
+        spec = np.pi * D * Vis * F
+        w = nl * (1.0 if vis is None else vis) * lit
+        out += E * w[:, None] * ((1.0 - F)[:, None] * albedo + spec[:, None])
+    return out.astype(np.float32)
+
+
+def motion_image(camera: Camera, vertices: np.ndarray, faces: np.ndarray, motion: np.ndarray | None,
+                 tri_id: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """(H, W, 2) float32 image displacement of the visible points over the exposure, px.
+
+    ``project(X + dX) - project(X)`` with ``X`` the visible world point (from ``tri_id``/``bary``) and
+    ``dX`` the barycentric interpolation of the per-vertex world motion ``motion`` (V, 3) mm (None: no
+    motion, zeros on the surface). NaN on background.
+    """
+    H, W = tri_id.shape
+    out = np.full((H, W, 2), np.nan, dtype=np.float32)
+    m = tri_id >= 0
+    if not m.any():
+        return out
+    tri = np.asarray(faces)[tri_id[m]]
+    b = bary[m].astype(np.float64)
+    if motion is None:
+        out[m] = 0.0
+        return out
+    X = np.einsum("nk,nkd->nd", b, np.asarray(vertices, dtype=np.float64)[tri])
+    dX = np.einsum("nk,nkd->nd", b, np.asarray(motion, dtype=np.float64)[tri])
+    out[m] = (camera.project(X + dX) - camera.project(X)).astype(np.float32)
+    return out
+
+
+def finish_outputs(res: RenderResult, img: np.ndarray, lights, output: str, noise_sigma: float, camera: Camera,
+                    seed, with_motion: bool, mesh) -> RenderResult:
+    """Fill ``color`` / ``linear`` / ``motion_px`` of ``res`` from the float image ``img`` (8-bit levels
+    on the legacy path, linear radiance with ``lights``)."""
+    if output not in ("srgb8", "linear", "both"):
+        raise ValueError(f"render output must be 'srgb8', 'linear' or 'both', got {output!r}")
+    if lights is None:
+        if output != "srgb8":
+            res.linear = srgb_to_linear(np.clip(np.asarray(img, np.float32) / np.float32(255.0), 0.0, 1.0))
+    else:
+        lin = np.asarray(img, dtype=np.float32)
+        if output != "linear":
+            res.color = finish_color(linear_to_srgb(lin) * np.float32(255.0), noise_sigma, camera, seed)
+        if output != "srgb8":
+            res.linear = lin
+    if output == "linear":
+        res.color = None
+    if with_motion:
+        res.motion_px = motion_image(camera, mesh.vertices, mesh.faces, mesh.vertex_motion, res.tri_id, res.bary)
+    return res

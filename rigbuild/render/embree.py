@@ -3,7 +3,8 @@
 The independent oracle for the GL renderer in tests and the fallback where EGL is absent. Rays are the
 camera's (:meth:`rigbuild.camera.Camera.rays` model: undistorted pixel centres), cast in the camera frame
 from the origin with direction ``(x, y, 1)`` so that the hit distance is the camera depth ``z``. Colour:
-the same Lambert model as the GL shader; texture lookups are trilinear over a mip pyramid with the level
+the same Lambert model as the GL shader (with ``lights``: the same linear GGX + Lambert model and shadow
+maps, here built by ray casting from each light; see :mod:`rigbuild.render.lights`); texture lookups are trilinear over a mip pyramid with the level
 chosen from the pixel's texel footprint (isotropic, no anisotropy and no anti-aliasing, 1 sample/pixel).
 """
 
@@ -16,8 +17,14 @@ from rigbuild.render.common import (
     RenderResult,
     background_rgb,
     finish_color,
+    finish_outputs,
+    ggx_shade,
     light_in_camera,
+    lights_in_camera,
     pixel_rays,
+    shadow_frame,
+    shadow_visibility,
+    srgb_to_linear,
 )
 from rigbuild.render.mesh import TexturedMesh
 
@@ -121,25 +128,35 @@ def render_mesh(
     msaa: bool = True,
     with_color: bool = True,
     with_geometry: bool = True,
+    lights=None,
+    material=None,
+    output: str = "srgb8",
+    with_motion: bool = False,
 ) -> RenderResult:
     """Render ``mesh`` seen by ``camera`` by ray casting (same signature and model as the GL renderer).
 
     ``msaa`` is accepted for signature compatibility and ignored (1 sample per pixel); ``with_color=False``
-    skips shading (``color`` is the plain background).
+    skips shading (``color`` is the plain background). Shadows come from shadow maps built by ray casting
+    from each shadowing light (the same maps and lookup as the GL shader).
     """
     del msaa
     xy = pixel_rays(camera)
     H, W = camera.height, camera.width
     if mesh.faces.shape[0] == 0:
         img = np.broadcast_to(background_rgb(background).astype(np.float32), (H, W, 3))
-        return RenderResult(finish_color(img, noise_sigma, camera, seed), np.full((H, W), np.nan, np.float32),
-                            np.full((H, W), -1, np.int32), np.zeros((H, W, 3), np.float32))
+        if lights is not None:
+            img = srgb_to_linear(img / np.float32(255.0))
+        res = RenderResult(finish_color(img, noise_sigma, camera, seed), np.full((H, W), np.nan, np.float32),
+                           np.full((H, W), -1, np.int32), np.zeros((H, W, 3), np.float32))
+        return finish_outputs(res, img, lights, output, noise_sigma, camera, seed, with_motion, mesh)
     V = camera.world_to_camera(mesh.vertices)
     z, tri, bary = cast_rays(V, mesh.faces, xy.reshape(-1, 2))
     hit = np.flatnonzero(tri >= 0)
     bg = background_rgb(background)
     color = np.empty((H * W, 3), dtype=np.float32)
     color[:] = bg.astype(np.float32)
+    if lights is not None:
+        color[:] = srgb_to_linear(bg / 255.0)
     if hit.size and with_color:
         t = tri[hit]
         b = bary[hit]
@@ -161,22 +178,97 @@ def render_mesh(
         mm_per_px = z[hit] / np.sqrt(camera.K[0, 0] * camera.K[1, 1])
         lod = np.log2(np.maximum(texels_per_mm[t] * mm_per_px, 1e-6))
         albedo = sample_texture(mesh.texture, uv, lod)
+        cover = None
         if mesh.dot_centers is not None and mesh.dot_centers.shape[0]:
             C = camera.world_to_camera(mesh.dot_centers)
             r = mesh.dot_radii
             cover = np.zeros(hit.size)
-            for c, rad in zip(C, r):
+            which = np.zeros(hit.size, dtype=np.int64)
+            for i, (c, rad) in enumerate(zip(C, r)):
                 dist = np.linalg.norm(P - c, axis=1)
-                cover = np.maximum(cover, np.clip((rad - dist) / mm_per_px + 0.5, 0.0, 1.0))
-            dot = np.asarray(np.broadcast_to(mesh.dot_albedo, (3,)), dtype=np.float32)
+                ci = np.clip((rad - dist) / mm_per_px + 0.5, 0.0, 1.0)
+                which[ci > cover] = i
+                cover = np.maximum(cover, ci)
+            if mesh.per_dot_albedo:
+                dot = mesh.dot_colors()[which]
+            else:
+                dot = np.asarray(np.broadcast_to(mesh.dot_albedo, (3,)), dtype=np.float32)
             albedo = albedo * (1 - cover[:, None]).astype(np.float32) + dot * cover[:, None].astype(np.float32)
-        L = light_in_camera(camera, light_dir)
-        shade = ambient + (1.0 - ambient) * np.maximum(n @ L, 0.0)
-        color[hit] = albedo * shade[:, None].astype(np.float32)
+        if lights is None:
+            L = light_in_camera(camera, light_dir)
+            shade = ambient + (1.0 - ambient) * np.maximum(n @ L, 0.0)
+            color[hit] = albedo * shade[:, None].astype(np.float32)
+        else:
+            color[hit] = _shade_lit(camera, mesh, V, lights, material, albedo, n, P, t, b, uv, lod, cover)
     depth = z.astype(np.float32).reshape(H, W)
-    return RenderResult(
-        finish_color(color.reshape(H, W, 3), noise_sigma, camera, seed),
+    res = RenderResult(
+        None if lights is not None else finish_color(color.reshape(H, W, 3), noise_sigma, camera, seed),
         depth,
         tri.astype(np.int32).reshape(H, W),
         bary.astype(np.float32).reshape(H, W, 3),
     )
+    return finish_outputs(res, color.reshape(H, W, 3), lights, output, noise_sigma, camera, seed, with_motion, mesh)
+
+
+def shadow_map_rays(frame, verts_cam: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(S, S) float32 light-frame depth at the texel centres of ``frame`` by ray casting (inf = empty)."""
+    S = frame.size
+    j, i = np.mgrid[0:S, 0:S].astype(np.float64)
+    x = ((i - frame.cu) / frame.a).reshape(-1)
+    y = ((j - frame.cv) / frame.a).reshape(-1)
+    R = frame.R                     # light = R @ camera + t; rows: camera = light @ R (t = 0 for ortho)
+    if frame.perspective:
+        d_l = np.stack([x, y, np.ones_like(x)], 1)
+        org = np.broadcast_to(-R.T @ frame.t, d_l.shape)
+    else:
+        z0 = frame.near - 10.0
+        d_l = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (x.size, 3))
+        org = np.stack([x, y, np.full_like(x, z0)], 1) @ R
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+
+    scene = rtcore_scene.EmbreeScene()
+    TriangleMesh(scene, np.ascontiguousarray(verts_cam, dtype=np.float32), np.ascontiguousarray(faces, dtype=np.int32))
+    res = scene.run(np.ascontiguousarray(org, dtype=np.float32), np.ascontiguousarray(d_l @ R, dtype=np.float32),
+                    output=1)
+    hit = np.asarray(res["geomID"]) >= 0
+    t = np.asarray(res["tfar"], dtype=np.float64)
+    depth = np.where(hit, t if frame.perspective else t + z0, np.inf)
+    return depth.astype(np.float32).reshape(S, S)
+
+
+def _shade_lit(camera, mesh, V, lights, material, albedo8, n, P, t, b, uv, lod, cover) -> np.ndarray:
+    """Linear radiance (N, 3) of the hit points with the GGX + shadow-map model of :mod:`rigbuild.render.lights`."""
+    from rigbuild.render.lights import SHADOW_MAP_SIZE, Material
+
+    mat = material if material is not None else Material()
+    rho = srgb_to_linear(np.clip(albedo8 / np.float32(255.0), 0.0, 1.0))
+    fr = np.einsum("nk,nkd->nd", b, mat.vertex_values(mesh.vertices.shape[0])[mesh.faces[t]].astype(np.float64))
+    packed = mat.packed_map(mesh.texture.shape[:2])
+    if packed is not None:
+        s = sample_texture(packed, uv, lod)
+        use_s, use_r = mat.has_maps
+        if use_s:
+            fr[:, 0] = s[:, 0]
+        if use_r:
+            fr[:, 1] = s[:, 1]
+    if cover is not None:
+        if mat.dot_specular is not None:
+            fr[:, 0] = fr[:, 0] * (1 - cover) + mat.dot_specular * cover
+        if mat.dot_roughness is not None:
+            fr[:, 1] = fr[:, 1] * (1 - cover) + mat.dot_roughness * cover
+    Ls = lights_in_camera(camera, lights)
+    vis = []
+    for L in Ls:
+        if not L["shadows"]:
+            vis.append(None)
+            continue
+        frame = shadow_frame(L, V, SHADOW_MAP_SIZE)
+        smap = shadow_map_rays(frame, V, mesh.faces)
+        if L["kind"] == 1:
+            l = np.broadcast_to(L["vec"], P.shape)
+        else:
+            d = L["vec"] - P
+            l = d / np.linalg.norm(d, axis=1, keepdims=True)
+        vis.append(shadow_visibility(smap, frame, P, n, l, L["softness"]))
+    return ggx_shade(rho.astype(np.float64), n, P, fr[:, 0], fr[:, 1], Ls, vis)

@@ -7,7 +7,9 @@ Per image:
    (plus a 2-pixel margin).
 2. Id pass (no multisampling): triangle id + 1 into an R32I buffer of the pinhole image.
 3. Colour pass (4x MSAA unless ``msaa=False``): Lambert-shaded albedo texture (mipmapped, anisotropic)
-   with painted dots, into a float buffer of the pinhole image.
+   with painted dots, into a float buffer of the pinhole image. With ``lights``: first one depth pass per
+   shadowing light into an R32F shadow map, then linear-light GGX + Lambert shading
+   (:mod:`rigbuild.render.lights`).
 4. Colour is resampled to the distorted image with ``cv2.remap`` (bilinear). Depth, triangle id and
    barycentrics at the distorted pixel centres are never interpolated: a full-screen GLSL pass intersects
    each pixel's exact ray (double precision) with the triangles found at the 2x2 pinhole pixel centres
@@ -31,9 +33,14 @@ from rigbuild.render.common import (
     RenderResult,
     background_rgb,
     finish_color,
+    finish_outputs,
     light_in_camera,
+    lights_in_camera,
     pixel_rays,
     ring_search,
+    shadow_frame,
+    srgb_to_linear,
+    vogel_taps,
 )
 from rigbuild.render.mesh import TexturedMesh
 
@@ -94,6 +101,170 @@ void main() {
     float shade = ambient + (1.0 - ambient) * max(dot(n, light_dir), 0.0);
     out_color = vec4(a * shade * 255.0, 1.0);  // float buffer, 8-bit levels: rounded once, at the end
 }
+"""
+# Per-dot paint colours on the legacy (8-bit Lambert) path: row 1 of the dots texture holds RGB (0..1).
+_COLOR_FS_DOT_COLORS = _COLOR_FS.replace(
+    "        float cover = 0.0;\n",
+    "        float cover = 0.0;\n        int which = 0;\n").replace(
+    "            cover = max(cover, clamp((d.w - length(v_pos - d.xyz)) / fw + 0.5, 0.0, 1.0));\n",
+    "            float ci = clamp((d.w - length(v_pos - d.xyz)) / fw + 0.5, 0.0, 1.0);\n"
+    "            if (ci > cover) { cover = ci; which = i; }\n").replace(
+    "        a = mix(a, dot_albedo, cover);",
+    "        a = mix(a, texelFetch(dots, ivec2(which, 1), 0).rgb, cover);")
+
+_LIT_VS = """
+#version 400
+uniform mat4 proj;
+in vec3 in_pos;
+in vec3 in_normal;
+in vec2 in_uv;
+in vec2 in_mat;
+out vec3 v_pos;
+out vec3 v_normal;
+out vec2 v_uv;
+out vec2 v_mat;
+void main() {
+    v_pos = in_pos; v_normal = in_normal; v_uv = in_uv; v_mat = in_mat;
+    gl_Position = proj * vec4(in_pos, 1.0);
+}
+"""
+# Linear-light GGX + Lambert shading with shadow maps (the model of rigbuild.render.lights; numpy twin:
+# rigbuild.render.common.ggx_shade and shadow_visibility).
+_LIT_FS = """
+#version 400
+#define PI 3.14159265358979
+uniform sampler2D albedo;
+uniform sampler2D matmap;     // RGB32F: F0, roughness
+uniform int use_map_f0;
+uniform int use_map_rough;
+uniform sampler2D dots;       // width M, row 0: camera-frame centre (mm), radius (mm); row 1: RGB 0..1
+uniform int n_dots;
+uniform vec2 dot_mat;         // paint F0, roughness (< 0: keep the skin's)
+uniform int n_lights;
+uniform int l_kind[8];        // 0 ambient, 1 directional, 2 point
+uniform vec3 l_vec[8];        // towards the light (unit) or position (mm), camera frame
+uniform vec3 l_rad[8];
+uniform float l_ref2[8];
+uniform int l_smap[8];        // shadow map index, -1 none
+uniform float l_soft[8];
+uniform sampler2D smap[4];    // R32F light-frame depth
+uniform mat4 s_view[4];       // camera frame -> light frame
+uniform vec4 s_proj[4];       // a, cu, cv, perspective
+uniform int s_size;
+uniform vec2 taps[16];
+in vec3 v_pos;
+in vec3 v_normal;
+in vec2 v_uv;
+in vec2 v_mat;
+out vec4 out_color;
+
+vec3 srgb2lin(vec3 c) {
+    return mix(c / 12.92, pow((c + 0.055) / 1.055, vec3(2.4)), greaterThan(c, vec3(0.04045)));
+}
+
+float cmp(int s, ivec2 ij, float ref) {
+    if (any(lessThan(ij, ivec2(0))) || any(greaterThanEqual(ij, ivec2(s_size)))) return 1.0;
+    return ref <= texelFetch(smap[s], ij, 0).x ? 1.0 : 0.0;
+}
+
+float visibility(int s, vec3 p, float nl, float soft) {
+    vec4 q = s_view[s] * vec4(p, 1.0);
+    vec4 pr = s_proj[s];
+    bool persp = pr.w > 0.5;
+    float w = persp ? q.z : 1.0;
+    vec2 uv = pr.x * q.xy / w + pr.yz;
+    float tmm = persp ? q.z / pr.x : 1.0 / pr.x;
+    float c = clamp(nl, 1e-4, 1.0);
+    float tn = min(sqrt(1.0 - c * c) / c, 10.0);
+    float r = soft / tmm;
+    float ref = q.z - tmm * (1.0 + (1.5 + r) * tn);
+    int nt = soft > 0.0 ? 16 : 1;
+    float acc = 0.0;
+    for (int k = 0; k < nt; k++) {
+        vec2 t = soft > 0.0 ? uv + taps[k] * r : uv;
+        vec2 f = floor(t);
+        vec2 fr = t - f;
+        ivec2 i0 = ivec2(f);
+        acc += (1.0 - fr.x) * (1.0 - fr.y) * cmp(s, i0, ref) + fr.x * (1.0 - fr.y) * cmp(s, i0 + ivec2(1, 0), ref)
+             + (1.0 - fr.x) * fr.y * cmp(s, i0 + ivec2(0, 1), ref) + fr.x * fr.y * cmp(s, i0 + ivec2(1, 1), ref);
+    }
+    return acc / float(nt);
+}
+
+void main() {
+    vec3 n = normalize(v_normal);
+    if (dot(n, v_pos) > 0.0) n = -n;
+    vec3 a = texture(albedo, v_uv).rgb;
+    vec2 fr = v_mat;
+    if (use_map_f0 + use_map_rough > 0) {
+        vec2 m = texture(matmap, v_uv).rg;
+        if (use_map_f0 > 0) fr.x = m.x;
+        if (use_map_rough > 0) fr.y = m.y;
+    }
+    if (n_dots > 0) {
+        float fw = max(length(fwidth(v_pos)), 1e-6);
+        float cover = 0.0;
+        int which = 0;
+        for (int i = 0; i < n_dots; i++) {
+            vec4 d = texelFetch(dots, ivec2(i, 0), 0);
+            float ci = clamp((d.w - length(v_pos - d.xyz)) / fw + 0.5, 0.0, 1.0);
+            if (ci > cover) { cover = ci; which = i; }
+        }
+        a = mix(a, texelFetch(dots, ivec2(which, 1), 0).rgb, cover);
+        if (dot_mat.x >= 0.0) fr.x = mix(fr.x, dot_mat.x, cover);
+        if (dot_mat.y >= 0.0) fr.y = mix(fr.y, dot_mat.y, cover);
+    }
+    vec3 rho = srgb2lin(clamp(a, 0.0, 1.0));
+    vec3 v = -normalize(v_pos);
+    float nv = clamp(dot(n, v), 1e-4, 1.0);
+    float al = max(fr.y, 0.02);
+    al *= al;
+    float a2 = al * al;
+    vec3 L = vec3(0.0);
+    for (int i = 0; i < n_lights; i++) {
+        if (l_kind[i] == 0) { L += rho * l_rad[i]; continue; }
+        vec3 l;
+        vec3 E;
+        if (l_kind[i] == 1) { l = l_vec[i]; E = l_rad[i]; }
+        else {
+            vec3 d = l_vec[i] - v_pos;
+            float d2 = dot(d, d);
+            l = d * inversesqrt(d2);
+            E = l_rad[i] * (l_ref2[i] / d2);
+        }
+        float nl = dot(n, l);
+        if (nl <= 0.0) continue;
+        float vis = l_smap[i] >= 0 ? visibility(l_smap[i], v_pos, nl, l_soft[i]) : 1.0;
+        vec3 h = normalize(l + v);
+        float nh = clamp(dot(n, h), 0.0, 1.0);
+        float vh = clamp(dot(v, h), 0.0, 1.0);
+        float dd = nh * nh * (a2 - 1.0) + 1.0;
+        float D = a2 / (PI * dd * dd);
+        float nlc = max(nl, 1e-4);
+        float Vis = 0.5 / (nlc * sqrt(nv * nv * (1.0 - a2) + a2) + nv * sqrt(nlc * nlc * (1.0 - a2) + a2));
+        float F = fr.x + (1.0 - fr.x) * pow(1.0 - vh, 5.0);
+        L += E * (nl * vis) * ((1.0 - F) * rho + PI * D * Vis * F);
+    }
+    out_color = vec4(L, 1.0);
+}
+"""
+_SHADOW_VS = """
+#version 330
+uniform mat4 s_view_m;
+uniform mat4 s_clip;
+in vec3 in_pos;
+out float v_z;
+void main() {
+    vec4 q = s_view_m * vec4(in_pos, 1.0);
+    v_z = q.z;
+    gl_Position = s_clip * q;
+}
+"""
+_SHADOW_FS = """
+#version 330
+in float v_z;
+out float o_z;
+void main() { o_z = v_z; }
 """
 _RESOLVE_VS = """
 #version 400
@@ -188,6 +359,53 @@ class _GL:
         self._resolve_fbos: dict[tuple, object] = {}
         self._rays: dict[tuple, object] = {}
         self._textures: dict[int, tuple] = {}
+        self._progs: dict[str, object] = {}
+        self._shadow_fbos: dict[tuple, tuple] = {}
+        self._dummy = None
+
+    def program(self, name: str):
+        """A lazily compiled shader program: ``"dot_colors"``, ``"lit"`` or ``"shadow"``."""
+        prog = self._progs.get(name)
+        if prog is None:
+            vs, fs = {"dot_colors": (_COLOR_VS, _COLOR_FS_DOT_COLORS), "lit": (_LIT_VS, _LIT_FS),
+                      "shadow": (_SHADOW_VS, _SHADOW_FS)}[name]
+            prog = self.ctx.program(vertex_shader=vs, fragment_shader=fs)
+            self._progs[name] = prog
+        return prog
+
+    def shadow_framebuffer(self, size: int, index: int):
+        """(framebuffer, R32F texture) number ``index`` of side ``size`` for a shadow map; cached."""
+        key = (size, index)
+        hit = self._shadow_fbos.get(key)
+        if hit is None:
+            tex = self.ctx.texture((size, size), 1, dtype="f4")
+            tex.filter = (self.moderngl.NEAREST, self.moderngl.NEAREST)
+            fbo = self.ctx.framebuffer(color_attachments=[tex], depth_attachment=self.ctx.depth_renderbuffer((size, size)))
+            hit = (fbo, tex)
+            self._shadow_fbos[key] = hit
+        return hit
+
+    def dummy_texture(self):
+        """A 1x1 float texture bound to unused sampler units."""
+        if self._dummy is None:
+            self._dummy = self.ctx.texture((1, 1), 3, np.zeros(3, "f4").tobytes(), dtype="f4")
+        return self._dummy
+
+    def float_texture(self, image: np.ndarray):
+        """GL texture (mipmapped, repeat) of an (H, W, 3) float32 image, cached per array (material maps)."""
+        dead = [k for k, (ref, _) in self._textures.items() if ref() is None]
+        for k in dead:
+            self._textures.pop(k)[1].release()
+        hit = self._textures.get(id(image))
+        if hit is not None and hit[0]() is image:
+            return hit[1]
+        data = np.ascontiguousarray(image[::-1], dtype="f4")
+        tex = self.ctx.texture((image.shape[1], image.shape[0]), 3, data.tobytes(), dtype="f4")
+        tex.build_mipmaps()
+        tex.filter = (self.moderngl.LINEAR_MIPMAP_LINEAR, self.moderngl.LINEAR)
+        tex.repeat_x = tex.repeat_y = True
+        self._textures[id(image)] = (weakref.ref(image), tex)
+        return tex
 
     # ------------------------------------------------------------------ caches
     def texture(self, image: np.ndarray):
@@ -376,6 +594,10 @@ def render_mesh(
     msaa: bool = True,
     with_color: bool = True,
     with_geometry: bool = True,
+    lights=None,
+    material=None,
+    output: str = "srgb8",
+    with_motion: bool = False,
 ) -> RenderResult:
     """Render ``mesh`` seen by ``camera`` (with its lens distortion) by rasterization on EGL/llvmpipe.
 
@@ -391,6 +613,8 @@ def render_mesh(
     msaa : 4x multisampling for the colour pass (depth/id/bary never multisample).
     with_color : False skips the colour pass (``color`` is the plain background).
     with_geometry : False skips the id pass and the exact resolve (depth NaN, tri_id -1, bary 0).
+    lights, material, output, with_motion : as :func:`rigbuild.render.render_mesh` (``with_motion`` runs
+        the geometry pass even when ``with_geometry`` is False).
 
     Returns
     -------
@@ -402,8 +626,14 @@ def render_mesh(
     if mesh.faces.shape[0] == 0:
         H, W = camera.height, camera.width
         img = np.broadcast_to(background_rgb(background).astype(np.float32), (H, W, 3))
-        return RenderResult(finish_color(img, noise_sigma, camera, seed), np.full((H, W), np.nan, np.float32),
-                            np.full((H, W), -1, np.int32), np.zeros((H, W, 3), np.float32))
+        res = RenderResult(finish_color(img, noise_sigma, camera, seed), np.full((H, W), np.nan, np.float32),
+                           np.full((H, W), -1, np.int32), np.zeros((H, W, 3), np.float32))
+        if lights is not None:
+            img = srgb_to_linear(img / np.float32(255.0))
+        return finish_outputs(res, img, lights, output, noise_sigma, camera, seed, with_motion, mesh)
+    if output not in ("srgb8", "linear", "both"):
+        raise ValueError(f"render output must be 'srgb8', 'linear' or 'both', got {output!r}")
+    with_geometry = with_geometry or with_motion
 
     V = camera.world_to_camera(mesh.vertices)
     tri_cam = V[mesh.faces]  # (F, 3, 3) float64
@@ -433,9 +663,15 @@ def render_mesh(
             pin_ids = np.frombuffer(id_fbo.read(components=1, dtype="i4"), dtype=np.int32).reshape(Hp, Wp)
         # ---- colour pass
         pin_rgb = None
-        if with_color:
+        if with_color and lights is None:
             pin_rgb = _color_pass(gl, camera, mesh, N[corners], vbo_pos, proj, light_dir, ambient, bg,
                                   color_fbo, resolve_fbo, buffers)
+        elif with_color:
+            bg = srgb_to_linear(bg / 255.0).astype(np.float64)
+            pin_rgb = _lit_color_pass(gl, camera, mesh, V, N[corners], vbo_pos, proj, lights, material, bg,
+                                      color_fbo, resolve_fbo, buffers)
+        elif lights is not None:
+            bg = srgb_to_linear(bg / 255.0).astype(np.float64)
     finally:
         for b in buffers:
             b.release()
@@ -454,7 +690,9 @@ def render_mesh(
         depth = np.full((H, W), np.nan, np.float32)
         tri_id = np.full((H, W), -1, np.int32)
         bary = np.zeros((H, W, 3), np.float32)
-    return RenderResult(finish_color(color, noise_sigma, camera, seed), depth, tri_id, bary)
+    res = RenderResult(None if lights is not None else finish_color(color, noise_sigma, camera, seed),
+                       depth, tri_id, bary)
+    return finish_outputs(res, color, lights, output, noise_sigma, camera, seed, with_motion, mesh)
 
 
 def _color_pass(gl: _GL, camera: Camera, mesh: TexturedMesh, normals_cam, vbo_pos, proj: bytes, light_dir,
@@ -466,20 +704,22 @@ def _color_pass(gl: _GL, camera: Camera, mesh: TexturedMesh, normals_cam, vbo_po
     vbo_n = ctx.buffer(nrm.tobytes())
     vbo_uv = ctx.buffer(uv.tobytes())
     buffers += [vbo_n, vbo_uv]
-    prog = gl.color_prog
+    prog = gl.program("dot_colors") if mesh.per_dot_albedo else gl.color_prog
     prog["proj"].write(proj)
     prog["light_dir"].value = tuple(float(x) for x in light_in_camera(camera, light_dir))
     prog["ambient"].value = float(ambient)
-    prog["dot_albedo"].value = tuple(float(c) / 255.0 for c in np.broadcast_to(mesh.dot_albedo, (3,)))
+    if not mesh.per_dot_albedo:
+        prog["dot_albedo"].value = tuple(float(c) / 255.0 for c in np.broadcast_to(mesh.dot_albedo, (3,)))
     prog["albedo"].value = 0
     prog["dots"].value = 1
     gl.texture(mesh.texture).use(location=0)
     n_dots = 0 if mesh.dot_centers is None else mesh.dot_centers.shape[0]
-    dots = np.zeros((max(n_dots, 1), 4), dtype="f4")
-    if n_dots:
+    dots = _dots_array(camera, mesh) if mesh.per_dot_albedo else np.zeros((max(n_dots, 1), 4), dtype="f4")
+    if n_dots and not mesh.per_dot_albedo:
         dots[:, :3] = camera.world_to_camera(mesh.dot_centers)
         dots[:, 3] = mesh.dot_radii
-    dots_tex = ctx.texture((dots.shape[0], 1), 4, dots.tobytes(), dtype="f4")
+    rows = 2 if mesh.per_dot_albedo else 1
+    dots_tex = ctx.texture((dots.shape[0] // rows, rows), 4, dots.tobytes(), dtype="f4")
     dots_tex.filter = (gl.moderngl.NEAREST, gl.moderngl.NEAREST)
     buffers.append(dots_tex)
     dots_tex.use(location=1)
@@ -488,6 +728,145 @@ def _color_pass(gl: _GL, camera: Camera, mesh: TexturedMesh, normals_cam, vbo_po
     buffers.append(vao_c)
     color_fbo.use()
     color_fbo.clear(*bg.tolist(), 1.0, depth=1.0)  # float buffer in 0..255 levels
+    vao_c.render(gl.moderngl.TRIANGLES)
+    src = color_fbo
+    if resolve_fbo is not None:
+        ctx.copy_framebuffer(resolve_fbo, color_fbo)
+        src = resolve_fbo
+    Wp, Hp = src.size
+    return np.frombuffer(src.read(components=3, dtype="f4"), dtype=np.float32).reshape(Hp, Wp, 3)
+
+
+def _dots_array(camera: Camera, mesh: TexturedMesh) -> np.ndarray:
+    """(2 * max(M, 1), 4) float32 dots texture: row 0 centres (camera frame, mm) and radii, row 1 RGB 0..1."""
+    M = 0 if mesh.dot_centers is None else mesh.dot_centers.shape[0]
+    dots = np.zeros((2, max(M, 1), 4), dtype="f4")
+    if M:
+        dots[0, :, :3] = camera.world_to_camera(mesh.dot_centers)
+        dots[0, :, 3] = mesh.dot_radii
+        dots[1, :, :3] = mesh.dot_colors() / np.float32(255.0)
+    return dots.reshape(-1, 4)
+
+
+def ortho_projection(frame, near: float, far: float) -> np.ndarray:
+    """(4, 4) GL clip matrix of an orthographic shadow frame (texel centre ``u`` -> window ``u + 0.5``)."""
+    S = frame.size
+    P = np.zeros((4, 4))
+    P[0] = [2 * frame.a / S, 0, 0, 2 * (frame.cu + 0.5) / S - 1]
+    P[1] = [0, 2 * frame.a / S, 0, 2 * (frame.cv + 0.5) / S - 1]
+    P[2] = [0, 0, 2 / (far - near), -(far + near) / (far - near)]
+    P[3] = [0, 0, 0, 1]
+    return P
+
+
+def _shadow_pass(gl: _GL, frame, vbo_pos, index: int, buffers: list):
+    """Render the light-frame depth of the mesh into shadow map ``index``; returns its texture."""
+    ctx = gl.ctx
+    prog = gl.program("shadow")
+    view = np.eye(4)
+    view[:3, :3] = frame.R
+    view[:3, 3] = frame.t
+    if frame.perspective:
+        near = 0.5 * frame.near
+        far = 1.5 * frame.far + 1.0
+        Kl = np.array([[frame.a, 0.0, frame.cu], [0.0, frame.a, frame.cv], [0.0, 0.0, 1.0]])
+        clip = gl_projection(Kl, frame.size, frame.size, near, far)
+    else:
+        clip = ortho_projection(frame, frame.near - 10.0, frame.far + 10.0)
+    prog["s_view_m"].write(view.T.astype("f4").tobytes())
+    prog["s_clip"].write(clip.T.astype("f4").tobytes())
+    vao = ctx.vertex_array(prog, [(vbo_pos, "3f", "in_pos")])
+    buffers.append(vao)
+    fbo, tex = gl.shadow_framebuffer(frame.size, index)
+    fbo.use()
+    fbo.clear(1e30, 1e30, 1e30, 1e30, depth=1.0)
+    vao.render(gl.moderngl.TRIANGLES)
+    return tex, view
+
+
+def _set(prog, name: str, value) -> None:
+    """Set a uniform if the compiler kept it."""
+    try:
+        u = prog[name]
+    except KeyError:
+        return
+    u.value = value
+
+
+def _lit_color_pass(gl: _GL, camera: Camera, mesh: TexturedMesh, V, normals_cam, vbo_pos, proj: bytes, lights,
+                    material, bg_lin: np.ndarray, color_fbo, resolve_fbo, buffers: list) -> np.ndarray:
+    """Shade the pinhole image in linear light (GGX + Lambert, shadow maps): (Hp, Wp, 3) float32."""
+    from rigbuild.render.lights import MAX_LIGHTS, MAX_SHADOW_MAPS, PCF_TAPS, SHADOW_MAP_SIZE, Material
+
+    ctx = gl.ctx
+    mat = material if material is not None else Material()
+    Ls = lights_in_camera(camera, lights)
+    if len(Ls) > MAX_LIGHTS:
+        raise ValueError(f"render_mesh: at most {MAX_LIGHTS} lights, got {len(Ls)}")
+    if sum(L["shadows"] for L in Ls) > MAX_SHADOW_MAPS:
+        raise ValueError(f"render_mesh: at most {MAX_SHADOW_MAPS} shadowing lights")
+    prog = gl.program("lit")
+    # ---- shadow maps
+    smaps, views, projs, idx = [], [], [], []
+    for L in Ls:
+        if not L["shadows"]:
+            idx.append(-1)
+            continue
+        frame = shadow_frame(L, V, SHADOW_MAP_SIZE)
+        tex, view = _shadow_pass(gl, frame, vbo_pos, len(smaps), buffers)
+        idx.append(len(smaps))
+        smaps.append(tex)
+        views.append(view)
+        projs.append((frame.a, frame.cu, frame.cv, 1.0 if frame.perspective else 0.0))
+    # ---- colour
+    corners = mesh.faces.reshape(-1)
+    nrm = np.ascontiguousarray(normals_cam, dtype="f4")
+    uv = np.ascontiguousarray(mesh.uvs[mesh.face_uvs.reshape(-1)], dtype="f4")
+    fr = np.ascontiguousarray(mat.vertex_values(mesh.vertices.shape[0])[corners], dtype="f4")
+    vbo_n, vbo_uv, vbo_m = ctx.buffer(nrm.tobytes()), ctx.buffer(uv.tobytes()), ctx.buffer(fr.tobytes())
+    buffers += [vbo_n, vbo_uv, vbo_m]
+    prog["proj"].write(proj)
+    gl.texture(mesh.texture).use(location=0)
+    _set(prog, "albedo", 0)
+    packed = mat.packed_map(mesh.texture.shape[:2])
+    (gl.float_texture(packed) if packed is not None else gl.dummy_texture()).use(location=1)
+    _set(prog, "matmap", 1)
+    use_s, use_r = mat.has_maps
+    _set(prog, "use_map_f0", int(use_s))
+    _set(prog, "use_map_rough", int(use_r))
+    dots = _dots_array(camera, mesh)
+    n_dots = 0 if mesh.dot_centers is None else mesh.dot_centers.shape[0]
+    dots_tex = ctx.texture((dots.shape[0] // 2, 2), 4, dots.tobytes(), dtype="f4")
+    dots_tex.filter = (gl.moderngl.NEAREST, gl.moderngl.NEAREST)
+    buffers.append(dots_tex)
+    dots_tex.use(location=2)
+    _set(prog, "dots", 2)
+    _set(prog, "n_dots", int(n_dots))
+    _set(prog, "dot_mat", (-1.0 if mat.dot_specular is None else float(mat.dot_specular),
+                           -1.0 if mat.dot_roughness is None else float(mat.dot_roughness)))
+    pad = MAX_LIGHTS - len(Ls)
+    _set(prog, "n_lights", len(Ls))
+    _set(prog, "l_kind", [int(L["kind"]) for L in Ls] + [0] * pad)
+    _set(prog, "l_vec", [tuple(float(x) for x in L["vec"]) for L in Ls] + [(0.0, 0.0, 0.0)] * pad)
+    _set(prog, "l_rad", [tuple(float(x) for x in L["rad"]) for L in Ls] + [(0.0, 0.0, 0.0)] * pad)
+    _set(prog, "l_ref2", [float(L["ref2"]) for L in Ls] + [1.0] * pad)
+    _set(prog, "l_smap", idx + [-1] * pad)
+    _set(prog, "l_soft", [float(L["softness"]) for L in Ls] + [0.0] * pad)
+    for k in range(MAX_SHADOW_MAPS):
+        (smaps[k] if k < len(smaps) else gl.dummy_texture()).use(location=3 + k)
+    _set(prog, "smap", list(range(3, 3 + MAX_SHADOW_MAPS)))
+    spad = MAX_SHADOW_MAPS - len(smaps)
+    mats = np.stack([(views[k] if k < len(views) else np.eye(4)).T for k in range(MAX_SHADOW_MAPS)])
+    if "s_view" in prog:
+        prog["s_view"].write(np.ascontiguousarray(mats, dtype="f4").tobytes())
+    _set(prog, "s_proj", projs + [(1.0, 0.0, 0.0, 0.0)] * spad)
+    _set(prog, "s_size", int(SHADOW_MAP_SIZE))
+    _set(prog, "taps", [tuple(float(x) for x in t) for t in vogel_taps(PCF_TAPS)])
+    vao_c = ctx.vertex_array(prog, [(vbo_pos, "3f", "in_pos"), (vbo_n, "3f", "in_normal"), (vbo_uv, "2f", "in_uv"),
+                                    (vbo_m, "2f", "in_mat")])
+    buffers.append(vao_c)
+    color_fbo.use()
+    color_fbo.clear(*bg_lin.tolist(), 1.0, depth=1.0)
     vao_c.render(gl.moderngl.TRIANGLES)
     src = color_fbo
     if resolve_fbo is not None:

@@ -32,8 +32,10 @@ class TexturedMesh:
         within ``dot_radius_mm`` (3-D distance) of a centre is painted ``dot_albedo``, so a dot is a disc
         of that radius on the skin that moves with the centre (pass deformed marker vertices per frame).
     dot_radius_mm : scalar or (M,) dot radius, mm.
-    dot_albedo : (3,) uint8 RGB paint colour of the dots.
+    dot_albedo : (3,) RGB paint colour of the dots (0..255), or (M, 3) one colour per dot.
     vertex_normals : (V, 3) float64 unit normals for shading, or None (area-weighted from the faces).
+    vertex_motion : (V, 3) float64 world displacement of each vertex over the exposure, mm, or None;
+        ``render_mesh(..., with_motion=True)`` projects it to per-pixel image motion.
     """
 
     vertices: np.ndarray
@@ -45,6 +47,7 @@ class TexturedMesh:
     dot_radius_mm: float | np.ndarray = 1.5
     dot_albedo: tuple[int, int, int] = (25, 25, 25)
     vertex_normals: np.ndarray | None = None
+    vertex_motion: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float64)
@@ -55,6 +58,8 @@ class TexturedMesh:
             self.dot_centers = np.asarray(self.dot_centers, dtype=np.float64).reshape(-1, 3)
         if self.vertex_normals is not None:
             self.vertex_normals = np.asarray(self.vertex_normals, dtype=np.float64)
+        if self.vertex_motion is not None:
+            self.vertex_motion = np.asarray(self.vertex_motion, dtype=np.float64)
         self.validate()
 
     def validate(self) -> None:
@@ -81,6 +86,23 @@ class TexturedMesh:
             r = np.broadcast_to(np.asarray(self.dot_radius_mm, dtype=np.float64), (self.dot_centers.shape[0],))
             if np.any(r <= 0):
                 raise InputError("TexturedMesh: dot_radius_mm must be positive")
+        a = np.asarray(self.dot_albedo, dtype=np.float64)
+        M = 0 if self.dot_centers is None else self.dot_centers.shape[0]
+        if not (a.shape == (3,) or a.shape == (M, 3)):
+            raise InputError(f"TexturedMesh: dot_albedo must be (3,) or ({M}, 3), got {a.shape}")
+        if self.vertex_motion is not None and self.vertex_motion.shape != (V, 3):
+            raise InputError(f"TexturedMesh: vertex_motion must be ({V}, 3)")
+
+    @property
+    def per_dot_albedo(self) -> bool:
+        """True when ``dot_albedo`` gives one colour per dot."""
+        return np.ndim(self.dot_albedo) == 2
+
+    def dot_colors(self) -> np.ndarray:
+        """(M, 3) float32 dot paint colours, 0..255 (empty without dots)."""
+        M = 0 if self.dot_centers is None else self.dot_centers.shape[0]
+        a = np.asarray(self.dot_albedo, dtype=np.float32)
+        return np.ascontiguousarray(np.broadcast_to(a, (M, 3)) if a.ndim == 1 else a)
 
     @property
     def dot_radii(self) -> np.ndarray:
@@ -95,11 +117,13 @@ class TexturedMesh:
             return self.vertex_normals
         return vertex_normals(self.vertices, self.faces)
 
-    def with_vertices(self, vertices: np.ndarray, dot_centers: np.ndarray | None = None) -> "TexturedMesh":
-        """The same mesh (topology, UVs, texture, dots style) with new vertex positions (and dot centres)."""
+    def with_vertices(self, vertices: np.ndarray, dot_centers: np.ndarray | None = None,
+                      vertex_motion: np.ndarray | None = None) -> "TexturedMesh":
+        """The same mesh (topology, UVs, texture, dots style) with new vertex positions (and dot centres,
+        and per-vertex exposure motion)."""
         return TexturedMesh(vertices, self.faces, self.uvs, self.face_uvs, self.texture,
                             self.dot_centers if dot_centers is None else dot_centers,
-                            self.dot_radius_mm, self.dot_albedo, None)
+                            self.dot_radius_mm, self.dot_albedo, None, vertex_motion)
 
 
 # --------------------------------------------------------------------------- speckle
