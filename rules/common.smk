@@ -10,7 +10,7 @@ from rigbuild.errors import InputError
 from rigbuild.params import STAGE_PARAMS, load_from_config
 from rigbuild.retarget.methods import PIPELINE_METHODS
 from rigbuild.session import read_session, session_from_dict
-from rigbuild.synth.session import plan_session, planned_files
+from rigbuild.synth.session import check_synthetic, plan_session, planned_files
 
 validate(config, schema="../workflow/schemas/config.schema.json")
 
@@ -94,6 +94,8 @@ def check_rig_spec(spec, where):
 
 # Validate every session and rig at DAG start: errors name the file and the field.
 for _s in SESSIONS:
+    if is_synthetic(_s):
+        check_synthetic(config["sessions"][_s]["synthetic"], f"sessions.{_s}.synthetic")
     _spec = session_spec(_s)
     check_rig_spec(_spec.template_rig, f"sessions.{_s} template_rig")
 for _c, _cfg in config["characters"].items():

@@ -169,3 +169,65 @@ def test_rom_performs_lower_face_shapes_in_turn_without_antagonists():
             assert (s[:, lower_wo] > 0.5).sum(1).max() <= 1
     with pytest.raises(ValueError, match="lower_face_lanes"):
         make_rom_weights(ARKIT, 2, 15, lower_face_lanes=0)
+
+
+def test_rom_and_head_motion_defaults_unchanged():
+    """The opt-in options off reproduce the code before them (values from that code, rtol 1e-9)."""
+    from rigbuild.synth.motion import make_head_motion, make_rom_weights
+
+    s = np.stack(make_rom_weights(ARKIT, 4, 15, seed=1, peak_range=(0.5, 1.0)))
+    assert float(s.sum()) == pytest.approx(124.8173350602998, rel=1e-9)
+    assert float((s ** 2).sum()) == pytest.approx(72.5001698072607, rel=1e-9)
+    R, t = make_head_motion(40, seed=2, max_rotation_deg=2.0, max_translation_mm=3.0)
+    assert float(R.sum()) == pytest.approx(119.97106782761949, rel=1e-9)
+    assert float(t.sum()) == pytest.approx(19.831602134828923, rel=1e-9)
+
+
+def test_rom_holds_peaks_with_ease():
+    from rigbuild.synth.motion import hold_lengths, rom_frames_needed
+
+    names = [n for n in ARKIT if n != "mouthClose"]  # (jawOpen would inherit mouthClose's hold as its base)
+    F = 60
+    lengths = []
+    for seed in range(3):
+        seqs = make_rom_weights(names, 6, F, seed=seed, coverage=2, peak_range=(0.5, 1.0), hold_frames=(3, 8))
+        W = np.stack(seqs)
+        peaks = W.max(axis=(0, 1))
+        assert peaks.min() >= 0.5 and peaks.max() <= 1.0 and peaks.std() > 0.05
+        for s in seqs:
+            assert np.all(s[0] == 0) and np.all(s[-1] == 0)
+            for k in np.flatnonzero(s.max(0) > 0):
+                runs = hold_lengths(s[:, k])
+                assert len(runs) == 1 and 3 <= runs[0] <= 8
+                lengths += runs
+                h0 = int(np.flatnonzero(np.abs(s[:, k] - s[:, k].max()) <= 1e-12)[0])
+                h1 = h0 + runs[0] - 1
+                peak = s[h0, k]
+                # eased in and out over at least two captured frames each, monotone
+                assert np.all((s[h0 - 2:h0, k] > 0) & (s[h0 - 2:h0, k] < peak))
+                assert np.all((s[h1 + 1:h1 + 3, k] > 0) & (s[h1 + 1:h1 + 3, k] < peak))
+                assert np.all(np.diff(s[:h0 + 1, k]) >= -1e-12) and np.all(np.diff(s[h1:, k]) <= 1e-12)
+    assert set(lengths) == set(range(3, 9))  # every hold length occurs
+    with pytest.raises(ValueError, match="too short for hold_frames"):
+        make_rom_weights(names, 2, 15, hold_frames=(3, 8))
+    assert rom_frames_needed((3, 8), 3, 2) == int(np.ceil((3 + 3.5) / (0.5 + 1 / 3 - 0.15) * 3.5)) + 1
+
+
+def test_head_motion_total_bounds_and_neutral_pose():
+    from scipy.spatial.transform import Rotation
+
+    def angle(R):
+        return np.degrees(np.linalg.norm(Rotation.from_matrix(R).as_rotvec(), axis=-1))
+
+    R, t = make_head_motion(60, seed=4, max_rotation_deg=8.0, max_translation_mm=10.0, bound="total")
+    assert np.allclose(R[0], np.eye(3)) and np.allclose(t[0], 0)
+    assert angle(R).max() == pytest.approx(8.0, abs=1e-9) and np.linalg.norm(t, axis=1).max() == pytest.approx(10.0)
+    R2, t2 = make_head_motion(60, seed=4, max_rotation_deg=8.0, max_translation_mm=10.0, bound="total",
+                              neutral_pose_deg=5.0, neutral_pose_mm=7.0)
+    assert angle(R2[0]) == pytest.approx(5.0) and np.linalg.norm(t2[0]) == pytest.approx(7.0)  # not the identity
+    rel = np.einsum("fij,kj->fik", R2, R2[0])  # R_f R_0^T: the motion inside the sequence
+    assert angle(rel).max() == pytest.approx(8.0, abs=1e-9)
+    assert np.linalg.norm(t2 - t2[0], axis=1).max() == pytest.approx(10.0)
+    assert np.allclose(rel, R) and np.allclose(t2 - t2[0], t)
+    with pytest.raises(ValueError, match="bound"):
+        make_head_motion(10, bound="sphere")

@@ -10,7 +10,11 @@ Ribera et al. 2017 sec. 1), each seeded and recorded in the returned ``info``:
 - **crosstalk**: a captured shape carries a little of another (``jawOpen`` carries some
   ``browInnerUp``; smiles carry cheek squint; blinks carry cheek squint; pucker carries funnel);
 - **spatial warp**: each displacement field is modulated by a smooth random field
-  ``1 + warp * f_k(x)`` and its directions turned by a small random rotation (<= 8 degrees).
+  ``1 + warp * f_k(x)`` and its directions turned by a small random rotation (<= 8 degrees);
+- **expression novelty** (opt-in, ``expression_novelty``): each shape gains an actor-specific smooth
+  displacement inside the shape's own region that no template shape spans (:func:`novel_displacement`);
+- **identity range** (opt-in, ``identity_sigma``): ICT identity coefficients drawn up to a stated number of
+  standard deviations instead of an unclipped N(0, 1).
 """
 
 from __future__ import annotations
@@ -76,6 +80,73 @@ def proportion_warp(vertices: np.ndarray, rng: np.random.Generator, strength: fl
     return out + bump_mm * smooth_random_field(vertices, rng)[:, None] * radial
 
 
+def sample_identity(rng: np.random.Generator, n_modes: int, sigma: float,
+                    distribution: str = "uniform") -> np.ndarray:
+    """Identity coefficients (n_modes,) in units of each mode's standard deviation, bounded by ``sigma``.
+
+    ``distribution``: ``"uniform"``: U(-sigma, sigma); ``"clipped_normal"``: N(0, 1) clipped to [-sigma, sigma].
+    """
+    if not np.isfinite(sigma) or sigma < 0:
+        raise ValueError(f"identity_sigma must be a non-negative number, got {sigma}")
+    if distribution == "uniform":
+        return rng.uniform(-sigma, sigma, size=n_modes)
+    if distribution == "clipped_normal":
+        return np.clip(rng.normal(size=n_modes), -sigma, sigma)
+    raise ValueError(f"unknown identity distribution '{distribution}' (use uniform or clipped_normal)")
+
+
+def shape_region_weight(delta: np.ndarray, threshold: float = 0.02, full: float = 0.25) -> np.ndarray:
+    """A smooth mask (V,) in [0, 1] of the region a shape moves: 0 where ``|delta| <= threshold * max|delta|``,
+    1 where ``|delta| >= full * max|delta|``, a quintic smoothstep between. delta (V, 3)."""
+    a = np.linalg.norm(delta, axis=1)
+    m = a.max(initial=0.0)
+    if m <= 0:
+        return np.zeros(a.shape[0])
+    x = np.clip((a / m - threshold) / (full - threshold), 0.0, 1.0)
+    return x * x * x * (x * (6 * x - 15) + 10)
+
+
+def novel_displacement(points: np.ndarray, delta: np.ndarray, span: np.ndarray, rng: np.random.Generator,
+                       n_centres: int = 6, length_fraction: float = 0.5) -> tuple[np.ndarray, float]:
+    """A smooth displacement (V, 3) inside ``delta``'s region, orthogonal to every field in ``span``.
+
+    ``points`` (V, 3) mm; ``delta`` (V, 3) the shape whose region is used (:func:`shape_region_weight`, mask
+    ``s``); ``span`` (K, V, 3) the fields it must be orthogonal to (the template's deltas). A smooth random
+    vector field ``g`` (three :func:`smooth_random_field` components of ``n_centres`` bumps over the region,
+    length scale ``length_fraction`` of the region's bounding-box diagonal) is projected in the ``s``-weighted inner product:
+    ``n = s * (g - sum_j c_j d_j)`` with ``c`` solving ``sum_v s (g - D c) . d_j = 0`` for every ``j``, so ``n``
+    is smooth, vanishes outside the region, and ``<n, d_j> = 0`` exactly for every template delta (over the
+    whole mesh and over the region alike). Returned with unit Frobenius norm (zeros if the region is empty),
+    and the fraction of its norm outside the span of ``span`` restricted to the region (1 up to round-off).
+    """
+    s = shape_region_weight(delta)
+    region = np.flatnonzero(s > 0)
+    out = np.zeros_like(points, dtype=np.float64)
+    if region.size < 3:
+        return out, 0.0
+    P = points[region]
+    ls = length_fraction * float(np.linalg.norm(P.max(0) - P.min(0)))
+    g = np.stack([smooth_random_field(P, rng, n_centres=n_centres, length_scale=max(ls, 1e-9)) for _ in range(3)], 1)
+    D = span[:, region].reshape(span.shape[0], -1).T  # (3R, K)
+    w = np.sqrt(np.repeat(s[region], 3))
+    c = np.linalg.lstsq(D * w[:, None], g.reshape(-1) * w, rcond=None)[0]
+    n = s[region][:, None] * (g - (D @ c).reshape(-1, 3))
+    norm = float(np.linalg.norm(n))
+    if norm <= 0:
+        return out, 0.0
+    out[region] = n / norm
+    return out, out_of_span_fraction(out[region].reshape(-1), D)
+
+
+def out_of_span_fraction(x: np.ndarray, D: np.ndarray) -> float:
+    """||x - proj_span(D) x|| / ||x|| for a vector x (N,) and the columns of D (N, K)."""
+    nx = float(np.linalg.norm(x))
+    if nx == 0:
+        return 0.0
+    c = np.linalg.lstsq(D, x, rcond=None)[0]
+    return float(np.linalg.norm(x - D @ c) / nx)
+
+
 def make_actor_rig(
     template: Rig,
     seed: int = 0,
@@ -86,6 +157,10 @@ def make_actor_rig(
     crosstalk: float = 0.08,
     warp: float = 0.15,
     max_tilt_deg: float = 8.0,
+    identity_sigma: float | None = None,
+    identity_distribution: str = "uniform",
+    n_identity_modes: int = 5,
+    expression_novelty: tuple[float, float] | None = None,
 ) -> tuple[Rig, dict]:
     """The actor's ground-truth rig derived from ``template`` (same topology and shape names).
 
@@ -98,11 +173,21 @@ def make_actor_rig(
     identity_folder : the ICT ``FaceXModel`` folder with ``identityNNN.obj``; without it the neutral
         gets :func:`proportion_warp`.
     intensity_range, asymmetry, crosstalk, warp, max_tilt_deg : see the module docstring.
+    identity_sigma : None (default): ``n_identity_modes`` coefficients ~ N(0, 1), unbounded. A number:
+        coefficients bounded by that many standard deviations (:func:`sample_identity` with
+        ``identity_distribution`` ``"uniform"`` or ``"clipped_normal"``). Ignored when ``identity`` is given
+        or without ``identity_folder``.
+    n_identity_modes : how many ICT identity modes are drawn (when ``identity`` is None).
+    expression_novelty : None (default): off. ``(lo, hi)``: each shape k gains
+        ``f_k ||delta_k|| * n_k`` with ``f_k ~ U(lo, hi)`` and ``n_k`` the unit :func:`novel_displacement` in
+        the shape's region, orthogonal to every template delta; ``delta_k`` is the shape after scaling and
+        tilt (before crosstalk, which is added after as without novelty). E.g. ``(0.15, 0.30)``.
 
     Returns
     -------
     actor : Rig named ``"actor"``; info : dict with ``intensity`` (K,), ``asymmetry`` (K,),
-    ``crosstalk`` [(shape, source, amount)], ``identity`` coefficients, ``tilt_deg`` (K,).
+    ``crosstalk`` [(shape, source, amount)], ``identity`` coefficients, ``tilt_deg`` (K,), and with novelty
+    ``novelty_fraction`` (K,) (||novel|| / ||delta||) and ``novelty_out_of_span`` (K,).
     """
     rng = np.random.default_rng(seed)
     V = template.n_vertices
@@ -110,7 +195,12 @@ def make_actor_rig(
     if identity_folder is not None:
         from rigbuild.io.rigs import read_ict_identity_modes
 
-        coeffs = rng.normal(size=5) if identity is None else np.asarray(identity, float)
+        if identity is not None:
+            coeffs = np.asarray(identity, float)
+        elif identity_sigma is None:
+            coeffs = rng.normal(size=int(n_identity_modes))
+        else:
+            coeffs = sample_identity(rng, int(n_identity_modes), float(identity_sigma), identity_distribution)
         modes = read_ict_identity_modes(identity_folder, len(coeffs))
         if modes.shape[1] != V:
             raise ValueError("identity modes do not match the template's vertex count")
@@ -135,6 +225,20 @@ def make_actor_rig(
         tilts[k] = np.degrees(np.arccos(np.clip((np.trace(Rk) - 1) / 2, -1, 1)))
         scale = intensity[k] * (1 + asym[k] * side) * (1 + warp * field)
         deltas[k] = (template.deltas[k] @ Rk.T) * scale[:, None]
+    if expression_novelty is not None:
+        lo, hi = (float(x) for x in expression_novelty)
+        if not (0 <= lo <= hi):
+            raise ValueError(f"expression_novelty must be 0 <= lo <= hi, got {expression_novelty}")
+        frac = np.zeros(K)
+        oos = np.zeros(K)
+        for k in range(K):
+            nrng = np.random.default_rng([seed, k, 19])  # own stream: the draws above are unchanged
+            f_k = nrng.uniform(lo, hi)
+            n_k, oos[k] = novel_displacement(pts, template.deltas[k], template.deltas, nrng)
+            dn = float(np.linalg.norm(deltas[k]))
+            deltas[k] = deltas[k] + f_k * dn * n_k
+            frac[k] = f_k if np.any(n_k) else 0.0
+        info.update(novelty_fraction=frac, novelty_out_of_span=oos)
     names = template.shape_names
     leaks = []
     for target, source, amount in CROSSTALK_PAIRS:

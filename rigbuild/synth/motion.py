@@ -22,6 +22,25 @@ def _bump(t: np.ndarray, start: float, peak: float, end: float) -> np.ndarray:
     return np.where(t <= peak, up, down)
 
 
+def _hold_bump(t: np.ndarray, start: float, hold_start: int, hold_end: int, end: float) -> np.ndarray:
+    """0 before ``start``, eases (C2 quintic) to 1 at frame ``hold_start``, holds 1 through frame ``hold_end``
+    (``hold_end - hold_start + 1`` frames), eases back to 0 at ``end``."""
+    up = _smoothstep((t - start) / max(hold_start - start, 1e-9))
+    down = _smoothstep((end - t) / max(end - hold_end, 1e-9))
+    return np.where(t < hold_start, up, np.where(t > hold_end, down, 1.0))
+
+
+def hold_lengths(w: np.ndarray, tol: float = 1e-12) -> list[int]:
+    """Lengths (frames) of the runs where a weight curve ``w`` (F,) sits at its maximum (within ``tol``);
+    empty for a curve that is zero throughout."""
+    m = float(np.max(w, initial=0.0))
+    if m <= 0:
+        return []
+    at = np.concatenate([[False], np.abs(w - m) <= tol, [False]])
+    edges = np.flatnonzero(np.diff(at.astype(np.int8)))
+    return (edges[1::2] - edges[::2]).tolist()
+
+
 #: Shapes defined on top of another one (ARKit's ``mouthClose`` closes the lips *against an open jaw*; with the
 #: jaw closed it drives the lips through each other, a pose no actor can hold and no tracker can follow):
 #: wherever such a shape is active its base is at least as active.
@@ -92,11 +111,13 @@ def _conflicts(k: int, group: Sequence[int], shape_names: Sequence[str]) -> bool
 
 
 def _lane_bumps(lanes: list[list[int]], F: int, K: int, amplitude: np.ndarray,
-                rng: np.random.Generator) -> np.ndarray:
+                rng: np.random.Generator, hold: np.ndarray | None = None, min_ease: int = 2) -> np.ndarray:
     """(F, K) weights for shapes performed in turn. Lane ``i`` of ``n`` performs its shapes one after another
     in equal windows, staggered by ``i / n`` of a window against lane 0 (so two lanes never peak together);
     each bump overlaps its neighbours' by a third of a window, with jittered onset and release, and peaks
-    at an integer frame."""
+    at an integer frame. With ``hold`` (K,) integer frames, shape k holds its peak for ``hold[k]`` frames
+    centred on its window (ease in and out over at least ``min_ease`` frames each strictly between 0 and
+    the peak)."""
     last = F - 1
     t = np.arange(F, dtype=np.float64)
     W = np.zeros((F, K))
@@ -108,7 +129,15 @@ def _lane_bumps(lanes: list[list[int]], F: int, K: int, amplitude: np.ndarray,
             peak = float(np.clip(np.round(centre), 1, last - 1))
             start = max(centre - (0.5 + 1 / 3 + rng.uniform(-0.15, 0.15)) * length, 0.0)
             end = min(centre + (0.5 + 1 / 3 + rng.uniform(-0.15, 0.15)) * length, float(last))
-            W[:, k] = np.maximum(W[:, k], amplitude[k] * _bump(t, min(start, peak - 1), peak, max(end, peak + 1)))
+            if hold is None:
+                W[:, k] = np.maximum(W[:, k], amplitude[k] * _bump(t, min(start, peak - 1), peak, max(end, peak + 1)))
+                continue
+            h = int(hold[k])
+            h0 = int(np.round(centre - (h - 1) / 2))
+            h0 = int(np.clip(h0, min_ease + 1, last - min_ease - h))
+            h1 = h0 + h - 1
+            curve = _hold_bump(t, min(start, h0 - min_ease - 1), h0, h1, max(end, h1 + min_ease + 1))
+            W[:, k] = np.maximum(W[:, k], amplitude[k] * curve)
     return W
 
 
@@ -121,6 +150,8 @@ def make_rom_weights(
     peak_range: tuple[float, float] = (1.0, 1.0),
     lower_face_lanes: int = 2,
     antagonist_limit: float = 0.1,
+    hold_frames: tuple[int, int] | None = None,
+    min_ease_frames: int = 2,
 ) -> list[np.ndarray]:
     """Range-of-motion weight sequences.
 
@@ -138,6 +169,11 @@ def make_rom_weights(
     other: no actor holds it, no stereo sees it). Timings are redrawn until no :data:`ANTAGONISTS` pair
     exceeds ``antagonist_limit`` together. A shape with a base (:data:`BASE_SHAPES`, e.g. ``mouthClose``
     on ``jawOpen``) is performed on it.
+
+    ``hold_frames`` (opt-in; None: each bump touches its peak at one frame): ``(lo, hi)`` integer frames;
+    each shape's bump then holds its peak for ``h ~ U{lo..hi}`` consecutive captured frames, with an ease in
+    and an ease out of at least ``min_ease_frames`` frames each (at the capture rate: one weight per frame).
+    A sequence too short to hold ``hi`` frames raises ValueError with the length needed.
 
     Returns a list of ``n_sequences`` arrays (F, K) in [0, 1].
     """
@@ -163,9 +199,12 @@ def make_rom_weights(
             groups[s].append(int(k))
     t = np.arange(F, dtype=np.float64)
     last = F - 1
+    if hold_frames is not None:
+        _check_holds(hold_frames, min_ease_frames, F, groups, shape_names, lower_face_lanes)
     seqs = []
     for g in groups:
         amplitude = rng.uniform(*peak_range, size=K)
+        hold = None if hold_frames is None else rng.integers(int(hold_frames[0]), int(hold_frames[1]) + 1, size=K)
         lower = [k for k in g if is_lower_face(shape_names[k])]
         upper = [k for k in g if k not in lower]
         best, best_overlap = None, np.inf
@@ -174,13 +213,18 @@ def make_rom_weights(
             for k in upper:
                 start = rng.uniform(0.0, 0.25) * last
                 end = last - rng.uniform(0.0, 0.25) * last
+                if hold is not None:
+                    W[:, k] = np.maximum(W[:, k], amplitude[k] * _upper_hold(t, start, end, int(hold[k]),
+                                                                             min_ease_frames, rng))
+                    continue
                 # the extreme is held at a captured frame (an integer frame: sampled bumps reach their peak)
                 peak = float(np.round(rng.uniform(start + 0.25 * (end - start), end - 0.25 * (end - start))))
                 W[:, k] = np.maximum(W[:, k], amplitude[k] * _bump(t, start, peak, end))
             order = [lower[i] for i in rng.permutation(len(lower))]
             n_lanes = min(lower_face_lanes, len(order))
             if n_lanes:
-                W += _lane_bumps([order[i::n_lanes] for i in range(n_lanes)], F, K, amplitude, rng)
+                W += _lane_bumps([order[i::n_lanes] for i in range(n_lanes)], F, K, amplitude, rng, hold,
+                                 min_ease_frames)
             W = apply_base_shapes(W, shape_names)
             W[0] = 0.0
             W[-1] = 0.0
@@ -193,15 +237,70 @@ def make_rom_weights(
     return seqs
 
 
+def _upper_hold(t: np.ndarray, start: float, end: float, h: int, min_ease: int,
+                rng: np.random.Generator) -> np.ndarray:
+    """An upper-face bump over [start, end] that holds 1 for ``h`` frames placed at random in its middle half
+    (ease in and out over at least ``min_ease`` frames strictly between 0 and the peak)."""
+    last = int(t[-1])
+    lo = int(np.ceil(max(start + min_ease + 1, start + 0.25 * (end - start) - (h - 1) / 2, min_ease + 1)))
+    hi = int(np.floor(min(end - min_ease - 1, end - 0.25 * (end - start) + (h - 1) / 2, last - min_ease - 1)
+                      - (h - 1)))
+    if hi < lo:  # the middle half is too short: centre the hold between the eases
+        lo = hi = int(np.clip(np.round((start + end) / 2 - (h - 1) / 2), min_ease + 1, last - min_ease - h))
+    h0 = int(rng.integers(lo, hi + 1))
+    h1 = h0 + h - 1
+    return _hold_bump(t, min(start, h0 - min_ease - 1), h0, h1, max(end, h1 + min_ease + 1))
+
+
+def rom_frames_needed(hold_frames: tuple[int, int], n_lane_shapes: int, lower_face_lanes: int = 2,
+                      min_ease_frames: int = 2) -> int:
+    """Fewest frames per ROM sequence that fit ``n_lane_shapes`` lower-face shapes per lane, each holding
+    ``hold_frames[1]`` frames inside its own window (so holds in a lane never overlap) and easing in and out
+    over at least ``min_ease_frames`` (the ease reaches into the neighbouring windows by their overlap, at
+    least ``(1/2 + 1/3 - 0.15)`` of a window from the window's centre: :func:`_lane_bumps`)."""
+    n = max(int(lower_face_lanes), 1)
+    hi = int(hold_frames[1])
+    window = max(hi, (int(min_ease_frames) + 1 + (hi - 1) / 2) / (0.5 + 1 / 3 - 0.15))
+    return int(np.ceil(window * (max(n_lane_shapes, 1) + (n - 1) / n))) + 1
+
+
+def _check_holds(hold_frames, min_ease: int, F: int, groups: list[list[int]], shape_names: Sequence[str],
+                 lanes: int) -> None:
+    lo, hi = int(hold_frames[0]), int(hold_frames[1])
+    if not (1 <= lo <= hi):
+        raise ValueError(f"hold_frames must be 1 <= lo <= hi frames, got {hold_frames}")
+    if min_ease < 1:
+        raise ValueError("min_ease_frames must be at least 1")
+    per_lane = max((int(np.ceil(sum(is_lower_face(shape_names[k]) for k in g) / lanes)) for g in groups), default=0)
+    need = max(rom_frames_needed((lo, hi), per_lane, lanes, min_ease), hi + 2 * min_ease + 2)
+    if F < need:
+        raise ValueError(f"frames_per_sequence={F} is too short for hold_frames={list(hold_frames)} with "
+                         f"{per_lane} lower-face shapes per lane: use at least {need} frames (or more sequences)")
+
+
 def make_head_motion(n_frames: int, seed: int = 0, max_rotation_deg: float = 3.0,
-                     max_translation_mm: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
-    """Smooth rigid head motion ``x' = R x + t``; frame 0 is the identity.
+                     max_translation_mm: float = 5.0, bound: str = "per_axis", neutral_pose_deg: float = 0.0,
+                     neutral_pose_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Smooth rigid head motion ``x' = R x + t``.
 
     Returns R (F, 3, 3), t (F, 3) mm. Each rotation-vector and translation component is a random
-    low-frequency sinusoid mix scaled to the given maxima.
+    low-frequency sinusoid mix that is 0 at frame 0.
+
+    ``bound``: ``"per_axis"`` (default): each component is scaled to reach ``max_rotation_deg`` /
+    ``max_translation_mm`` (so the rotation angle reaches up to sqrt(3) times the bound); ``"total"``: the
+    rotation angle ``|rotvec|`` and the translation length ``|t|`` of the motion reach exactly the bounds at
+    their largest frame.
+
+    ``neutral_pose_deg``, ``neutral_pose_mm`` (opt-in; 0: frame 0 is the identity): frame 0 is a pose
+    ``(R0, t0)`` rotated by exactly ``neutral_pose_deg`` about a random axis and shifted by exactly
+    ``neutral_pose_mm`` in a random direction (an actor never sits at the rig's origin), and the motion is
+    applied on top of it: ``R_f = M_f R0``, ``t_f = t0 + m_f``, so the bounds hold for the motion relative to
+    the neutral frame (``R_f R0^T``, ``t_f - t0``).
     """
     from scipy.spatial.transform import Rotation
 
+    if bound not in ("per_axis", "total"):
+        raise ValueError(f"unknown head-motion bound '{bound}' (use per_axis or total)")
     rng = np.random.default_rng(seed)
     u = np.linspace(0, 1, n_frames)
 
@@ -212,9 +311,35 @@ def make_head_motion(n_frames: int, seed: int = 0, max_rotation_deg: float = 3.0
         m = np.abs(c).max()
         return c / m if m > 0 else c
 
-    rv = np.stack([curve() for _ in range(3)], 1) * np.radians(max_rotation_deg)
-    t = np.stack([curve() for _ in range(3)], 1) * max_translation_mm
-    return Rotation.from_rotvec(rv).as_matrix(), t
+    if bound == "per_axis":
+        rv = np.stack([curve() for _ in range(3)], 1) * np.radians(max_rotation_deg)
+        t = np.stack([curve() for _ in range(3)], 1) * max_translation_mm
+    else:
+        def total(c: np.ndarray, limit: float) -> np.ndarray:
+            m = np.linalg.norm(c, axis=1).max(initial=0.0)
+            return c * (limit / m) if m > 0 else c
+
+        rv = total(np.stack([curve() for _ in range(3)], 1), np.radians(max_rotation_deg))
+        t = total(np.stack([curve() for _ in range(3)], 1), float(max_translation_mm))
+    R = Rotation.from_rotvec(rv).as_matrix()
+    if neutral_pose_deg == 0 and neutral_pose_mm == 0:
+        return R, t
+    R0, t0 = neutral_pose(seed, neutral_pose_deg, neutral_pose_mm)
+    return R @ R0, t + t0
+
+
+def neutral_pose(seed: int, angle_deg: float, shift_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The neutral frame's head pose: a rotation (3, 3) by exactly ``angle_deg`` about a random axis and a
+    translation (3,) of length exactly ``shift_mm`` (mm) in a random direction (own random stream of
+    ``seed``)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng([int(seed), 0x4E50])
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    return Rotation.from_rotvec(np.radians(angle_deg) * axis).as_matrix(), float(shift_mm) * direction
 
 
 def make_performance_weights(shape_names: Sequence[str], n_frames: int, fps: float, seed: int = 0,

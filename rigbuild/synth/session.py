@@ -31,18 +31,36 @@ SYNTH_DEFAULTS: dict[str, Any] = {
     "camera_rows": 1,
     "distortion_scale": 1.0,
     "noise_sigma": 1.5,
-    "paint_markers": True,
     # spacing (mm) of the registration dots painted between the markers (rigbuild.dots); None: markers only
     "dot_stencil_mm": None,
     # multisample anti-aliasing of the board and face renders (why off: docs/decisions.md)
     "msaa": False,
+    # how the cameras see the face (rigbuild.synth.capture): speckle | realistic skin; single | studio lights;
+    # camera: a sensor model (rigbuild.render.sensor.SensorParams keys) or None (8-bit Gaussian noise_sigma);
+    # shutter: exposure as a fraction of the frame interval (motion blur, with a camera block)
+    "appearance": "speckle",
+    "lights": "single",
+    "camera": None,
+    "shutter": 0.5,
+    # painted dots (rigbuild.synth.dots): stencil (the markers and the stencil sites, painted by hand: offsets
+    # along the skin of sd dot_placement_sd_mm, a missing fraction, diameters and darkness drawn per dot) | none
+    "dots": "stencil",
+    "dot_placement_sd_mm": 0.0,
+    "dot_missing_fraction": 0.0,
+    "dot_diameter_mm": [3.0, 3.0],
+    "dot_darkness": [0.902, 0.902],
     "calib_poses": 20,
     "board": {"type": "charuco", "squares_x": 7, "squares_y": 5, "square_size_mm": 24.0,
               "marker_size_mm": 18.0, "dictionary": "DICT_5X5_100"},
     "rom": {"n_sequences": 4, "frames_per_sequence": 9, "coverage": 2, "peak_range": [1.0, 1.0],
-            "max_rotation_deg": 2.0, "max_translation_mm": 3.0},
-    "performance": {"n": 1, "duration_s": 10.0, "fps": 30.0, "noise_mm": 0.2, "gap_fraction": 0.01},
-    "actor": {"intensity_range": [0.6, 1.5], "asymmetry": 0.25, "crosstalk": 0.08, "warp": 0.15},
+            "max_rotation_deg": 2.0, "max_translation_mm": 3.0, "hold_frames": None, "head_bound": "per_axis",
+            "neutral_pose_deg": 0.0, "neutral_pose_mm": 0.0},
+    # marker_placement_sd_mm: hand placement of the mocap markers along the skin; occlusion: gaps where fewer
+    # than min_cameras cameras of the rig see a marker (with gap_fraction's random gaps on top)
+    "performance": {"n": 1, "duration_s": 10.0, "fps": 30.0, "noise_mm": 0.2, "gap_fraction": 0.01,
+                    "marker_placement_sd_mm": 0.0, "occlusion": False, "min_cameras": 2},
+    "actor": {"intensity_range": [0.6, 1.5], "asymmetry": 0.25, "crosstalk": 0.08, "warp": 0.15,
+              "identity_sigma": None, "expression_novelty": None},
 }
 
 
@@ -97,7 +115,8 @@ def planned_files(name: str, synthetic: dict | None) -> list[str]:
 def planned_ground_truth(name: str, synthetic: dict | None) -> list[str]:
     """Ground-truth files (relative to the session folder) the generator writes; only rigbuild.eval reads them."""
     plan = plan_session(name, synthetic)
-    files = ["ground_truth/cameras.json", "ground_truth/actor_rig.npz", "ground_truth/template_rig.npz"]
+    files = ["ground_truth/cameras.json", "ground_truth/actor_rig.npz", "ground_truth/template_rig.npz",
+             "ground_truth/dots.npz"]
     files += [f"ground_truth/rom/{seq['name']}.npz" for seq in plan["rom"]]
     files += [f"ground_truth/performances/{perf['name']}.npz" for perf in plan["performances"]]
     return files
@@ -124,6 +143,7 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
     """
     from rigbuild.io.atomic import write_json
     from rigbuild.session import session_from_dict, write_session
+    from rigbuild.synth.capture import capture_setup
 
     say = progress or (lambda msg: None)
     p = synth_params(synthetic)
@@ -138,18 +158,19 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
-    actor, dot_vertices = _write_rigs(gt, spec, p)
+    actor, dots = _write_rigs(gt, spec, p)
     timings["rigs_s"] = time.perf_counter() - t0
     face_centre = actor.neutral[actor.face_vertices].mean(0)
     cameras = _write_cameras(gt, spec, p, name, face_centre)
+    setup = capture_setup(p, actor, cameras, face_centre, spec.width)
     t1 = time.perf_counter()
-    _render_calibration(tmp_dir, gt, spec, p, cameras, face_centre, say)
+    _render_calibration(tmp_dir, gt, spec, p, cameras, face_centre, setup, say)
     timings["calib_images_s"] = time.perf_counter() - t1
     t2 = time.perf_counter()
-    n_images = _render_rom(gt, spec, p, actor, cameras, face_centre, dot_vertices, say)
+    n_images = _render_rom(gt, spec, p, actor, cameras, face_centre, dots, setup, say)
     timings["rom_images_s"] = time.perf_counter() - t2
     timings["rom_images"] = n_images
-    _write_performances(tmp_dir, gt, spec, p, actor, face_centre)
+    _write_performances(tmp_dir, gt, spec, p, actor, face_centre, cameras)
 
     write_session(plan, tmp_dir)
     timings["total_s"] = time.perf_counter() - t0
@@ -177,14 +198,36 @@ def _write_rigs(gt: Path, spec, p: dict):
         raise InputError(f"template rig '{p['template_rig']}' has no marker set", fix="add markers to the rig")
     dot_vertices = painted_dot_vertices(template, spec.dot_stencil_mm)
     identity_folder = ict_dir() if p["template_rig"] == "ict" else None
+    a = p["actor"]
+    novelty = None if a["expression_novelty"] is None else tuple(float(x) for x in a["expression_novelty"])
     actor, actor_info = make_actor_rig(template, seed=int(p["seed"]), identity_folder=identity_folder,
-                                       intensity_range=tuple(p["actor"]["intensity_range"]),
-                                       asymmetry=p["actor"]["asymmetry"], crosstalk=p["actor"]["crosstalk"],
-                                       warp=p["actor"]["warp"])
+                                       intensity_range=tuple(a["intensity_range"]), asymmetry=a["asymmetry"],
+                                       crosstalk=a["crosstalk"], warp=a["warp"], identity_sigma=a["identity_sigma"],
+                                       expression_novelty=novelty)
     write_rig_npz(gt / "actor_rig.npz", actor)
     write_rig_npz(gt / "template_rig.npz", template)
     write_json(gt / "actor_info.json", actor_info)
-    return actor, dot_vertices
+    return actor, _paint_dots(gt, p, actor, dot_vertices, template.marker_vertices.size)
+
+
+def _paint_dots(gt: Path, p: dict, actor, site_vertices: np.ndarray, n_markers: int):
+    """The dots painted on the actor (:class:`rigbuild.synth.dots.PaintedDots`; none with ``dots: none``): by
+    hand near each stencil site (the markers first, never missing); where they are goes to ``gt/dots.npz``."""
+    from rigbuild.io.atomic import save_npz
+    from rigbuild.synth.dots import no_dots, place_painted_dots
+
+    if p["dots"] == "none":
+        painted = no_dots()
+    else:
+        painted = place_painted_dots(actor, site_vertices, sigma_mm=float(p["dot_placement_sd_mm"]),
+                                     missing_fraction=float(p["dot_missing_fraction"]),
+                                     diameter_mm=tuple(float(x) for x in p["dot_diameter_mm"]),
+                                     darkness=tuple(float(x) for x in p["dot_darkness"]), seed=int(p["seed"]) + 11,
+                                     keep_first=int(n_markers))
+    save_npz(gt / "dots.npz", triangles=painted.triangles, bary=painted.bary, radius_mm=painted.radius_mm,
+             albedo=painted.albedo, site=painted.site, site_vertex=np.asarray(site_vertices)[painted.site]
+             if len(painted) else np.zeros(0, np.int64), missing_sites=np.asarray(painted.missing_sites))
+    return painted
 
 
 def _write_cameras(gt: Path, spec, p: dict, name: str, face_centre: np.ndarray) -> list:
@@ -200,12 +243,12 @@ def _write_cameras(gt: Path, spec, p: dict, name: str, face_centre: np.ndarray) 
     return cameras
 
 
-def _render_calibration(tmp_dir: Path, gt: Path, spec, p: dict, cameras: list, face_centre: np.ndarray,
+def _render_calibration(tmp_dir: Path, gt: Path, spec, p: dict, cameras: list, face_centre: np.ndarray, setup,
                         say: Callable[[str], None]) -> None:
     """Render ``calib/<cam>/<n>.png`` for random board poses; write the poses and their visibility."""
     from rigbuild.io.atomic import save_npz, write_json
     from rigbuild.progress import progress as progress_bar
-    from rigbuild.render.board import render_board
+    from rigbuild.synth.capture import capture_board
     from rigbuild.synth.rig_layout import make_board_poses
 
     seed = int(p["seed"])
@@ -213,8 +256,7 @@ def _render_calibration(tmp_dir: Path, gt: Path, spec, p: dict, cameras: list, f
                                       center=face_centre)
     for cam in progress_bar(cameras, "calibration images", unit="camera"):
         for n, (Rb, tb) in enumerate(poses):
-            img = render_board(cam, spec.board, Rb, tb, noise_sigma=float(p["noise_sigma"]), msaa=bool(p["msaa"]),
-                               seed=seed * 1000 + n)
+            img = capture_board(cam, setup, spec.board, Rb, tb, seed=seed * 1000 + n)
             _write_png(tmp_dir / "calib" / cam.id / f"{n}.png", img)
     say(f"calibration images: {len(cameras)} cameras x {len(poses)} poses")
     save_npz(gt / "board_poses.npz", R=np.array([r for r, _ in poses]), t=np.array([t for _, t in poses]))
@@ -226,39 +268,42 @@ def _rigid_about(face_centre: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.nd
     return face_centre[None] - np.einsum("fij,j->fi", R, face_centre) + t
 
 
-def _render_rom(gt: Path, spec, p: dict, actor, cameras: list, face_centre: np.ndarray, dot_vertices: np.ndarray,
+def _render_rom(gt: Path, spec, p: dict, actor, cameras: list, face_centre: np.ndarray, dots, setup,
                 say: Callable[[str], None]) -> int:
     """Render every ROM sequence (``rom/<seq>/<cam>/<frame>.png``) and write ``gt/rom/<seq>.npz``.
 
+    dots : the painted :class:`~rigbuild.synth.dots.PaintedDots`; setup : the session's capture setup.
     Returns the number of images rendered.
     """
     from rigbuild.io.atomic import save_npz
     from rigbuild.progress import progress as progress_bar
-    from rigbuild.render import render_mesh
-    from rigbuild.render.mesh import TexturedMesh, speckle_texture
+    from rigbuild.synth.capture import capture_face, exposure_motion
+    from rigbuild.synth.dots import dot_centres
     from rigbuild.synth.motion import make_head_motion, make_rom_weights
 
     seed = int(p["seed"])
-    texture = speckle_texture(2048 if spec.width >= 1000 else 1024, seed=seed)
     rom_cfg = p["rom"]
+    holds = None if rom_cfg["hold_frames"] is None else tuple(int(x) for x in rom_cfg["hold_frames"])
     seqs = make_rom_weights(actor.shape_names, len(spec.rom), int(rom_cfg["frames_per_sequence"]),
                             seed=seed + 2, coverage=int(rom_cfg["coverage"]),
-                            peak_range=tuple(float(x) for x in rom_cfg["peak_range"]))
+                            peak_range=tuple(float(x) for x in rom_cfg["peak_range"]), hold_frames=holds)
     n_images = 0
     for s, (seq, Wseq) in enumerate(progress_bar(list(zip(spec.rom, seqs)), "ROM images", unit="sequence")):
         R, t = make_head_motion(Wseq.shape[0], seed=seed + 100 + s,
                                 max_rotation_deg=float(rom_cfg["max_rotation_deg"]),
-                                max_translation_mm=float(rom_cfg["max_translation_mm"]))
+                                max_translation_mm=float(rom_cfg["max_translation_mm"]), bound=rom_cfg["head_bound"],
+                                neutral_pose_deg=float(rom_cfg["neutral_pose_deg"]),
+                                neutral_pose_mm=float(rom_cfg["neutral_pose_mm"]))
         t_world = _rigid_about(face_centre, R, t)
         verts = actor.evaluate(Wseq)
         verts = np.einsum("fij,fvj->fvi", R, verts) + t_world[:, None, :]
         for i, frame in enumerate(seq.frames):
-            dots = verts[i][dot_vertices] if p["paint_markers"] else None
-            mesh = TexturedMesh(verts[i], actor.faces, actor.uvs, actor.face_uvs, texture, dot_centers=dots)
+            centres = dot_centres(dots, verts[i]) if len(dots) else None
+            motion = exposure_motion(verts, i, setup.shutter) if setup.linear else None
             for cam in cameras:
-                res = render_mesh(cam, mesh, noise_sigma=float(p["noise_sigma"]), msaa=bool(p["msaa"]),
-                                  seed=seed * 7919 + s * 1000 + i, with_geometry=False)
-                _write_png(spec.rom_image(seq.name, cam.id, frame), res.color)
+                img = capture_face(cam, setup, verts[i], seed * 7919 + s * 1000 + i, motion, centres,
+                                   dots.radius_mm, dots.albedo)
+                _write_png(spec.rom_image(seq.name, cam.id, frame), img)
                 n_images += 1
         save_npz(gt / "rom" / f"{seq.name}.npz", vertices=verts.astype(np.float32), weights=Wseq.astype(np.float32),
                  rotation=R.astype(np.float32), translation=t_world.astype(np.float32),
@@ -267,8 +312,13 @@ def _render_rom(gt: Path, spec, p: dict, actor, cameras: list, face_centre: np.n
     return n_images
 
 
-def _write_performances(tmp_dir: Path, gt: Path, spec, p: dict, actor, face_centre: np.ndarray) -> None:
-    """Write each performance's noisy markers (``performances/<name>.c3d``) and its ground truth npz."""
+def _write_performances(tmp_dir: Path, gt: Path, spec, p: dict, actor, face_centre: np.ndarray, cameras: list) -> None:
+    """Write each performance's recorded markers (``performances/<name>.c3d``: noise, gaps) and its ground truth.
+
+    By default the markers sit at the actor's marker vertices; with ``marker_placement_sd_mm`` they are placed
+    by hand along the skin, and with ``occlusion`` a marker is a gap where fewer than ``min_cameras`` cameras
+    of the rig see it (:func:`rigbuild.synth.markers.performance_markers`).
+    """
     from rigbuild.io.atomic import save_npz
     from rigbuild.io.markers import write_markers_c3d
     from rigbuild.synth.motion import make_head_motion, make_performance_weights, markers_from_rig
@@ -277,15 +327,61 @@ def _write_performances(tmp_dir: Path, gt: Path, spec, p: dict, actor, face_cent
     pc = p["performance"]
     fps = float(pc["fps"])
     n_frames = int(round(float(pc["duration_s"]) * fps))
+    by_hand = float(pc["marker_placement_sd_mm"]) > 0 or bool(pc["occlusion"])
     for i, perf in enumerate(spec.performances):
         Wp = make_performance_weights(actor.shape_names, n_frames, fps, seed=seed + 500 + i)
         R, t = make_head_motion(n_frames, seed=seed + 600 + i, max_rotation_deg=4.0, max_translation_mm=6.0)
         t_world = _rigid_about(face_centre, R, t)
-        clean = markers_from_rig(actor, Wp, R, t_world)
-        noisy = markers_from_rig(actor, Wp, R, t_world, noise_mm=float(pc["noise_mm"]),
-                                 gap_fraction=float(pc["gap_fraction"]), seed=seed + 700 + i)
+        if by_hand:
+            clean, noisy = _hand_placed_markers(p, actor, Wp, R, t_world, cameras, seed + 800 + i)
+        else:
+            clean = markers_from_rig(actor, Wp, R, t_world)
+            noisy = markers_from_rig(actor, Wp, R, t_world, noise_mm=float(pc["noise_mm"]),
+                                     gap_fraction=float(pc["gap_fraction"]), seed=seed + 700 + i)
         write_markers_c3d(tmp_dir / perf.file, noisy, actor.marker_names, fps)
         save_npz(gt / "performances" / f"{perf.name}.npz", weights=Wp.astype(np.float32),
                  shape_names=np.asarray(actor.shape_names), markers=clean.astype(np.float32),
                  marker_vertices=actor.marker_vertices, marker_names=np.asarray(actor.marker_names),
                  rotation=R.astype(np.float32), translation=t_world.astype(np.float32), fps=np.float64(fps))
+
+
+def _hand_placed_markers(p: dict, actor, W: np.ndarray, R: np.ndarray, t: np.ndarray, cameras: list, seed: int):
+    """(clean, recorded) markers (F, M, 3) mm placed by hand on the actor's skin: recorded with noise, the
+    occlusion gaps of the rig's cameras (``occlusion``) and random gaps (``gap_fraction``)."""
+    from rigbuild.synth.dots import place_painted_dots
+    from rigbuild.synth.markers import performance_markers
+
+    pc = p["performance"]
+    placement = place_painted_dots(actor, actor.marker_vertices, sigma_mm=float(pc["marker_placement_sd_mm"]),
+                                   missing_fraction=0.0, seed=seed)
+    clean = performance_markers(actor, W, R, t, placement, None, noise_mm=0.0, seed=seed)
+    noisy = performance_markers(actor, W, R, t, placement, cameras if pc["occlusion"] else None,
+                                noise_mm=float(pc["noise_mm"]), seed=seed + 1, min_cameras=int(pc["min_cameras"]))
+    rng = np.random.default_rng(seed + 2)
+    gaps = rng.random(noisy.shape[:2]) < float(pc["gap_fraction"])
+    noisy[gaps] = np.nan
+    return clean, noisy
+
+
+def check_synthetic(synthetic: dict | None, where: str) -> dict:
+    """The synthetic block with defaults, checked: bad realism keys fail at DAG start naming the key and the fix."""
+    from rigbuild.synth.capture import check_capture_keys
+
+    p = synth_params(synthetic)
+    check_capture_keys(p, where)
+    a, r, pc = p["actor"], p["rom"], p["performance"]
+    for key, value in (("actor.identity_sigma", a["identity_sigma"]), ("rom.neutral_pose_deg", r["neutral_pose_deg"]),
+                       ("rom.neutral_pose_mm", r["neutral_pose_mm"]),
+                       ("performance.marker_placement_sd_mm", pc["marker_placement_sd_mm"])):
+        if value is not None and float(value) < 0:
+            raise InputError(f"field '{where}.{key}' is {value}: it cannot be negative", path="config",
+                             fix=f"give {key.split('.')[-1]} >= 0")
+    if r["head_bound"] not in ("per_axis", "total"):
+        raise InputError(f"field '{where}.rom.head_bound' is {r['head_bound']!r}", path="config",
+                         fix="use per_axis or total")
+    if r["hold_frames"] is not None:
+        lo, hi = (int(x) for x in r["hold_frames"])
+        if not 1 <= lo <= hi:
+            raise InputError(f"field '{where}.rom.hold_frames' is {r['hold_frames']}", path="config",
+                             fix="give [lo, hi] frames with 1 <= lo <= hi")
+    return p
