@@ -1,6 +1,7 @@
-"""Synthetic capture generation speed: seconds per rendered image (default and realistic resolution)
-and the time to generate the whole demo session. Goals (foundation issue): < 0.5 s per 1280x960 image,
-demo session < 2 minutes.
+"""Synthetic capture generation speed: seconds per rendered image (clean speckle path at two resolutions; the
+realistic capture: skin, studio lights with shadows, sensor with motion blur, defocus and JPEG) and the time to
+generate the whole demo session. Goals: < 0.5 s per clean 1280x960 image (foundation issue), < 1 s per
+realistic 1280x960 image with motion blur on 2 cores (issue 19), demo session < 2 minutes.
 
     .venv/bin/python benchmarks/bench_synth.py
 """
@@ -42,6 +43,29 @@ def time_renders(rig_spec: str, width: int, height: int, backend: str, n: int = 
     return float(np.median(wall)), float(np.median(cpu))
 
 
+def time_realistic(rig_spec: str, width: int, height: int, n: int = 4) -> tuple[float, float]:
+    """Median wall and CPU seconds of one realistic capture (rigbuild.synth.capture.capture_face): realistic skin,
+    studio lights, the default sensor (f/8, vignetting, Bayer, noise) with JPEG 92 and motion blur from a 2 mm
+    head movement over the exposure. The skin atlas is painted once before timing (once per session)."""
+    from rigbuild.synth.capture import capture_face, capture_setup
+    from rigbuild.synth.session import synth_params
+
+    rig = load_rig(rig_spec)
+    centre = rig.neutral[rig.face_vertices].mean(0)
+    cams = make_camera_rig(n_cameras=4, width=width, height=height, target=centre)
+    p = synth_params({"appearance": "realistic", "lights": "studio", "camera": {"jpeg_quality": 92}})
+    setup = capture_setup(p, rig, cams, centre, width)
+    motion = np.tile([2.0, 0.5, 0.0], (rig.n_vertices, 1))
+    capture_face(cams[0], setup, rig.neutral, 0, motion)
+    wall, cpu = [], []
+    for i in range(n):
+        t0, c0 = time.perf_counter(), time.process_time()
+        capture_face(cams[i % 4], setup, rig.neutral, i, motion)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return float(np.median(wall)), float(np.median(cpu))
+
+
 def main() -> None:
     rows = []
     specs = ["procedural"] + (["ict"] if (ict_dir() / "generic_neutral_mesh.obj").exists() else [])
@@ -51,6 +75,10 @@ def main() -> None:
                 wall, cpu = time_renders(spec, w, h, backend, n=5 if backend == "gl" else 2)
                 rows.append({"rig": spec, "resolution": f"{w}x{h}", "backend": backend, "s_per_image": wall,
                              "cpu_s_per_image": cpu, "goal_s": 0.5 if w >= 1280 else None})
+        for (w, h) in [(640, 480), (1280, 960)]:
+            wall, cpu = time_realistic(spec, w, h)
+            rows.append({"rig": spec, "resolution": f"{w}x{h}", "backend": "gl realistic", "s_per_image": wall,
+                         "cpu_s_per_image": cpu, "goal_s": 1.0 if w >= 1280 else None})
     cfg = yaml.safe_load((PROJECT_ROOT / "config" / "config.yaml").read_text())
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()

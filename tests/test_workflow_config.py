@@ -99,3 +99,20 @@ def test_run_sessions_selects_and_names_unknown(tmp_path):
     r = _dry_run(tmp_path, cfg)
     assert r.returncode != 0
     assert "run_sessions" in r.out and "nosuch" in r.out
+
+
+@pytest.mark.parametrize("synthetic,key,fix", [
+    ({"appearance": "realstic"}, "appearance", "did you mean 'realistic'"),
+    ({"dots": "no"}, "dots", "use one of: stencil, none"),
+    ({"lights": "sun"}, "lights", "use one of: single, studio"),
+    ({"dot_placement_sd_mm": -1.0}, "dot_placement_sd_mm", "give dot_placement_sd_mm >= 0"),
+    ({"camera": {"f_number": 0}}, "camera.f_number", "fix:"),
+    ({"camera": {"f_numbr": 8}}, "camera.f_numbr", "did you mean 'f_number'"),
+    ({"performance": {"marker_placement_sd_mm": -2.0}}, "performance.marker_placement_sd_mm", ">= 0"),
+])
+def test_bad_realism_keys_fail_at_dag_start_with_the_key_and_the_fix(tmp_path, synthetic, key, fix):
+    r = _dry_run(tmp_path, {"sessions": {"s": {"path": str(tmp_path / "s"), "synthetic": synthetic}},
+                            "run_sessions": ["s"]})
+    assert r.returncode != 0
+    assert key in r.out and fix in r.out, r.out[-2000:]
+    assert not (tmp_path / "s").exists()
