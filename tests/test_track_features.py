@@ -59,6 +59,73 @@ def test_detect_dots_on_the_mask_box_equals_the_whole_image():
     np.testing.assert_array_equal(boxed[1], full[1])
 
 
+#: the detector for realistic captures (the default ``threshold`` detector is for grey paint on a bright speckle)
+CONTRAST = DotParams(detector="contrast")
+
+
+def test_the_threshold_detector_misses_skin_hued_dots_that_the_contrast_detector_finds():
+    rng = np.random.default_rng(6)
+    img = _shaded_skin(rng, texture=0.03)
+    centres = np.array([[x, y] for y in range(40, 220, 45) for x in range(40, 300, 45)], float)
+    paint = np.zeros(img.shape[:2], np.float32)
+    for x, y in centres:
+        cv2.circle(paint, (int(x), int(y)), 3, 1.0, -1)
+    img = img * (1 - 0.4 * paint)[..., None]  # 40 % darker than the skin around it, in the skin's hue
+    img = np.clip(cv2.GaussianBlur(img, (0, 0), 0.8) + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+    found = [(assign_detections(centres, detect_dots(img, p)[0], 2.0) >= 0).mean() for p in (DotParams(), CONTRAST)]
+    assert found[0] < 0.2 and found[1] > 0.9
+
+
+def _shaded_skin(rng, H=240, W=320, texture=0.0):
+    """Skin-hued image with a strong left-right shading ramp, a specular blob, smooth texture and noise."""
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
+    shade = 0.45 + 0.55 * xx / W
+    spec = 60.0 * np.exp(-((xx - 250) ** 2 + (yy - 60) ** 2) / (2 * 15.0 ** 2))
+    tex = 1.0 + texture * cv2.GaussianBlur(rng.normal(0, 1, (H, W)).astype(np.float32), (0, 0), 6.0)
+    base = np.array([200.0, 150.0, 125.0], np.float32)
+    return shade[..., None] * tex[..., None] * base + spec[..., None]
+
+
+def test_detect_dots_recall_on_shaded_noisy_skin_with_skin_hued_dots():
+    rng = np.random.default_rng(3)
+    img = _shaded_skin(rng, texture=0.05)
+    centres = np.array([[x, y] for y in range(30, 220, 38) for x in range(30, 300, 38)], float)
+    centres += rng.uniform(-3, 3, centres.shape)
+    ratio = rng.uniform(0.4, 0.7, centres.shape[0])  # dot brightness / skin: darkness 0.3-0.6
+    radius = rng.uniform(2.0, 3.8, centres.shape[0])
+    hi = np.zeros(img.shape, np.float32)
+    for (x, y), q, r in zip(centres, ratio, radius):  # sub-pixel discs (shift=3: 1/8 px), then blur (optics)
+        cv2.circle(hi, (int(round(8 * x)), int(round(8 * y))), int(8 * r), (1 - q,) * 3, -1, shift=3)
+    img = img * (1 - hi)  # the dot darkens the skin multiplicatively: it keeps the skin's hue
+    img = cv2.GaussianBlur(img, (0, 0), 0.8) + rng.normal(0, 2.0, img.shape)
+    det, _ = detect_dots(np.clip(img, 0, 255).astype(np.uint8), CONTRAST)
+    a = assign_detections(centres, det, 2.0, ambiguity_ratio=1.0)
+    assert (a >= 0).mean() >= 0.9
+    assert det.shape[0] <= centres.shape[0] + 2  # no false positives to speak of (shading, highlight)
+    err = np.linalg.norm(det[a[a >= 0]] - centres[a >= 0], axis=1)
+    assert np.median(err) < 0.3
+
+
+def test_detect_dots_finds_nothing_on_dot_free_textured_skin():
+    rng = np.random.default_rng(4)
+    img = _shaded_skin(rng, texture=0.08)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8) + rng.normal(0, 2.0, img.shape)
+    det, _ = detect_dots(np.clip(img, 0, 255).astype(np.uint8), CONTRAST)
+    assert det.shape[0] == 0
+
+
+def test_detect_dots_ignores_lines_and_searches_mask_holes():
+    rng = np.random.default_rng(5)
+    img = np.clip(_shaded_skin(rng) + rng.normal(0, 1.5, (240, 320, 3)), 0, 255).astype(np.uint8)
+    cv2.line(img, (40, 60), (140, 66), (60, 45, 40), 3)  # an eyebrow-like ridge
+    cv2.circle(img, (200, 150), 3, (40, 30, 28), -1)
+    mask = np.ones((240, 320), bool)
+    mask[146:155, 196:205] = False  # the stereo hole on the dot
+    det, _ = detect_dots(img, CONTRAST, mask=mask)
+    assert det.shape[0] == 1
+    np.testing.assert_allclose(det[0], [200, 150], atol=0.3)
+
+
 def test_assign_detections_gates_and_rejects_ambiguous():
     pred = np.array([[0, 0], [10, 0], [50, 50], [np.nan, np.nan]], float)
     det = np.array([[0.5, 0], [10, 1], [80, 80], [52, 50], [53, 50]])

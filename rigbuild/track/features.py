@@ -12,19 +12,31 @@ import cv2
 import numpy as np
 
 from rigbuild.camera import Camera
-from rigbuild.track.params import DotParams
+from rigbuild.track.params import ContrastDotParams, DotParams
 
 
 def detect_dots(image_rgb: np.ndarray, params: DotParams | None = None, mask: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Detect painted dots in an RGB image (H, W, 3) uint8.
+    """Detect painted dots in an RGB image (H, W, 3) uint8 with ``params.detector``: ``threshold`` (dark grey
+    pixels below a fixed fraction of the local background, :func:`_detect_threshold`) or ``contrast`` (blobs of
+    the contrast against the local skin at several scales, :func:`_detect_contrast`).
 
     mask : optional (H, W) bool region to search (e.g. where the face is).
-    Returns centres (N, 2) float64 px (OpenCV pixel centres, darkness-weighted centroids) and areas (N,).
+    Returns centres (N, 2) float64 px (OpenCV pixel centres) and areas (N,) px.
     """
     p = params or DotParams()
     if np.ndim(image_rgb) != 3 or np.shape(image_rgb)[2] != 3:
         raise ValueError("detect_dots expects an (H, W, 3) RGB image")
+    if p.detector == "contrast":
+        return _detect_contrast(image_rgb, p.contrast, mask)
+    return _detect_threshold(image_rgb, p, mask)
+
+
+def _detect_threshold(image_rgb: np.ndarray, p: DotParams, mask: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``threshold`` detector: a pixel is a dot pixel when its brightest channel is below ``darkness`` times
+    the local background and its red-minus-blue below ``chroma`` times it; components of [min_area, max_area]
+    px and fill ratio >= ``min_fill`` are dots (darkness-weighted centroids)."""
     if mask is not None:  # work on the mask's box, padded past the blur and background filters' reach
         rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
         if rows.size == 0:
@@ -34,7 +46,7 @@ def detect_dots(image_rgb: np.ndarray, params: DotParams | None = None, mask: np
         y0, y1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, H)
         x0, x1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, W)
         if (y0, y1, x0, x1) != (0, H, 0, W):
-            c, a = detect_dots(np.asarray(image_rgb)[y0:y1, x0:x1], p, mask[y0:y1, x0:x1])
+            c, a = _detect_threshold(np.asarray(image_rgb)[y0:y1, x0:x1], p, mask[y0:y1, x0:x1])
             return c + [x0, y0], a
     img = np.asarray(image_rgb, dtype=np.float32)
     b = cv2.GaussianBlur(img, (0, 0), p.blur_sigma) if p.blur_sigma > 0 else img
@@ -59,6 +71,161 @@ def detect_dots(image_rgb: np.ndarray, params: DotParams | None = None, mask: np
     cy = np.bincount(labs, weights=ww * ys, minlength=n) / np.maximum(sw, 1e-9)
     keep = np.flatnonzero(ok) + 1
     return np.stack([cx[keep], cy[keep]], axis=1), area[keep - 1].astype(np.float64)
+
+
+def _fill_small_holes(mask: np.ndarray, max_area: int) -> np.ndarray:
+    """``mask`` (H, W) bool with its holes (False components not touching the border) of at most
+    ``max_area`` px set: a stereo reconstruction leaves such holes on dark, textureless painted dots."""
+    inv = (~mask).astype(np.uint8)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(inv, 4)
+    if n <= 1:
+        return mask
+    H, W = mask.shape
+    x, y = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
+    inner = (x > 0) & (y > 0) & (x + stats[:, cv2.CC_STAT_WIDTH] < W) & (y + stats[:, cv2.CC_STAT_HEIGHT] < H)
+    fill = inner & (stats[:, cv2.CC_STAT_AREA] <= max_area)
+    fill[0] = False
+    return mask | fill[lab] & (inv > 0)
+
+
+def dot_contrast(image_rgb: np.ndarray, params: ContrastDotParams | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Relative darkness of every pixel against its local background: ``C = 1 - I / B`` (H, W) float32,
+    clipped to [0, 1], with I the brightest channel (Gaussian blur ``blur_sigma``) and B its grey-level
+    closing by a disc of ``background_px`` (the surrounding skin: a closing removes dark marks narrower
+    than the disc and follows the shading and highlights of the face, so C is a contrast that does not
+    depend on the illumination). Also returns I and B."""
+    p = params or ContrastDotParams()
+    img = np.asarray(image_rgb, dtype=np.float32)
+    b = cv2.GaussianBlur(img, (0, 0), p.blur_sigma) if p.blur_sigma > 0 else img
+    mx = np.maximum(np.maximum(b[..., 0], b[..., 1]), b[..., 2])
+    k = int(p.background_px) | 1
+    bg = cv2.morphologyEx(mx, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    C = np.clip(1.0 - mx / np.maximum(bg, 1.0), 0.0, 1.0).astype(np.float32)
+    return C, mx, bg
+
+
+def _detect_contrast(image_rgb: np.ndarray, p: ContrastDotParams, mask: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``contrast`` dot detector on an RGB image (H, W, 3) uint8.
+
+    A dot is a small, round dark blob. On the contrast image :func:`dot_contrast` (relative darkness
+    against the local skin, so shading and highlights do not matter) the detector takes the local maxima
+    of the scale-normalized Laplacian-of-Gaussian response ``R = -s^2 LoG_s * C`` over ``scales_px``
+    (a disc of contrast c and radius r gives ``R = 2c/e`` at ``s = r / sqrt 2``: R / (2/e) estimates the
+    dot's contrast whatever its size). A peak is a dot when that contrast estimate reaches
+    ``max(1 - darkness, noise_sigmas x noise)`` (noise: the robust spread of R over the search region,
+    which adapts the threshold to sensor noise and skin texture), the ratio of its two principal
+    curvatures is at most ``max_elongation`` (eyebrows, lid creases, hair strands and lip lines are ridges,
+    not blobs) and the pixels around it darker than half its contrast (its blob) number
+    [min_area, max_area]. With ``chroma`` > 0 the blob's darkest pixel must also be less saturated
+    ((R - B) / max(R, G, B)) than ``chroma`` times the background (grey paint under white light; off by
+    default: under tinted light, Bayer demosaicing and JPEG chroma subsampling dark paint takes the skin's
+    hue).
+
+    mask : optional (H, W) bool region to search (e.g. where the face is); it is closed by a
+    ``background_px`` disc and its holes of at most ``max_area`` px are filled (a stereo reconstruction
+    leaves holes on the dark, textureless dots themselves, and notches where they sit at its edge).
+    Returns centres (N, 2) float64 px (OpenCV pixel centres; contrast-weighted centroids of the blobs)
+    and blob areas (N,) px.
+    """
+    if mask is not None:  # work on the mask's box, padded past the blur and background filters' reach
+        k = int(p.background_px) | 1  # the dots' stereo holes and notches at the edge are searched too
+        mask = cv2.morphologyEx(np.asarray(mask, np.uint8), cv2.MORPH_CLOSE,
+                                cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+        mask = _fill_small_holes(mask, p.max_area)
+        rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+        if rows.size == 0:
+            return np.zeros((0, 2)), np.zeros(0)
+        pad = p.background_px + int(np.ceil(4 * (p.blur_sigma + max(p.scales_px)))) + 2
+        H, W = mask.shape
+        y0, y1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, H)
+        x0, x1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, W)
+        if (y0, y1, x0, x1) != (0, H, 0, W):
+            c, a = _contrast_peaks(np.asarray(image_rgb)[y0:y1, x0:x1], p, mask[y0:y1, x0:x1])
+            return c + [x0, y0], a
+    return _contrast_peaks(image_rgb, p, mask)
+
+
+def _hessian(S: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    dxx = cv2.Sobel(S, cv2.CV_32F, 2, 0, ksize=1, borderType=cv2.BORDER_REFLECT)
+    dyy = cv2.Sobel(S, cv2.CV_32F, 0, 2, ksize=1, borderType=cv2.BORDER_REFLECT)
+    dxy = cv2.Sobel(S, cv2.CV_32F, 1, 1, ksize=3, borderType=cv2.BORDER_REFLECT) / 4.0
+    return dxx, dyy, dxy
+
+
+_DISC_PEAK = 2.0 / np.e  # scale-normalized LoG response of a unit-contrast disc at its best scale
+
+
+def _contrast_peaks(image_rgb: np.ndarray, p: ContrastDotParams, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    C, mx, bg = dot_contrast(image_rgb, p)
+    region = (bg > 20) if mask is None else (mask & (bg > 20))
+    if not region.any():
+        return np.zeros((0, 2)), np.zeros(0)
+    best = np.full(C.shape, -np.inf, np.float32)
+    ratio = np.zeros(C.shape, np.float32)
+    scale = np.zeros(C.shape, np.float32)
+    noise = 0.0
+    for s in p.scales_px:
+        S = cv2.GaussianBlur(C, (0, 0), s)
+        dxx, dyy, dxy = _hessian(S)
+        R = -(s * s) * (dxx + dyy) / _DISC_PEAK  # contrast units
+        vals = R[region]
+        noise = max(noise, 1.4826 * float(np.median(np.abs(vals - np.median(vals)))))
+        # principal curvatures (of -S: positive on a blob); their ratio
+        tr, det = -(dxx + dyy), dxx * dyy - dxy * dxy
+        disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
+        k1, k2 = tr / 2 + disc, tr / 2 - disc
+        rt = np.where(k2 > 0, k1 / np.maximum(k2, 1e-12), np.inf).astype(np.float32)
+        up = R > best
+        best[up], ratio[up], scale[up] = R[up], rt[up], s
+    thr = max(1.0 - p.darkness, p.noise_sigmas * noise)
+    peak = (best >= thr) & (best >= cv2.dilate(best, np.ones((3, 3), np.uint8))) & region
+    peak &= ratio <= p.max_elongation
+    ys, xs = np.nonzero(peak)
+    if ys.size == 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    H, W = C.shape
+    img = np.asarray(image_rgb, dtype=np.float32) if p.chroma > 0 else None
+    out, areas, taken = [], [], np.zeros(C.shape, bool)
+    for i in np.argsort(-best[ys, xs]):
+        y, x = int(ys[i]), int(xs[i])
+        if taken[y, x]:
+            continue
+        r = int(np.ceil(2.5 * scale[y, x])) + 1
+        ya, yb, xa, xb = max(y - r, 0), min(y + r + 1, H), max(x - r, 0), min(x + r + 1, W)
+        win = C[ya:yb, xa:xb]
+        c0 = float(win[max(y - ya - 1, 0):y - ya + 2, max(x - xa - 1, 0):x - xa + 2].max())
+        blob = (win >= 0.5 * c0).astype(np.uint8)
+        n, lab = cv2.connectedComponents(blob, connectivity=8)
+        L = lab[y - ya, x - xa]
+        if L == 0:
+            continue
+        comp = lab == L
+        area = int(comp.sum())
+        if area < p.min_area or area > p.max_area:
+            continue
+        touches = comp[0].any() or comp[-1].any() or comp[:, 0].any() or comp[:, -1].any()
+        if touches and area > 0.5 * comp.size:  # part of a larger dark region, not a dot
+            continue
+        if img is not None:
+            wy, wx = np.unravel_index(np.argmax(np.where(comp, win, -1)), win.shape)
+            pix = img[ya + wy, xa + wx]
+            ring = img[ya:yb, xa:xb][~comp & (win < 0.25 * c0)]
+            if ring.shape[0]:
+                sk = np.median(ring, axis=0)
+                cp = (pix[0] - pix[2]) / max(pix.max(), 1.0)
+                cs = (sk[0] - sk[2]) / max(sk.max(), 1.0)
+                if cp >= p.chroma * max(cs, 0.05):
+                    continue
+        w = np.where(comp, win - 0.5 * c0, 0.0).astype(np.float64)
+        gy, gx = np.mgrid[ya:yb, xa:xb]
+        sw = max(w.sum(), 1e-12)
+        out.append(((w * gx).sum() / sw, (w * gy).sum() / sw))
+        areas.append(area)
+        taken[ya:yb, xa:xb] |= comp
+    if not out:
+        return np.zeros((0, 2)), np.zeros(0)
+    return np.asarray(out, np.float64), np.asarray(areas, np.float64)
 
 
 def _pixel_cells(shape: tuple[int, int], uv: np.ndarray):

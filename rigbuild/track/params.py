@@ -20,12 +20,39 @@ FLOW_PRESETS = ("ultrafast", "fast", "medium")
 
 
 @dataclass
-class DotParams:
-    """Dot detector thresholds: a pixel is a dot pixel when its brightest channel is below ``darkness``
-    times the local background (max filter over ``background_px``) and its red-minus-blue is below
-    ``chroma`` times the background; components with area in [min_area, max_area] px and fill ratio
-    (area / bounding-box area) >= ``min_fill`` are dots."""
+class ContrastDotParams:
+    """The ``contrast`` dot detector (:func:`rigbuild.track.features.detect_dots`): peaks of the scale-normalized
+    Laplacian-of-Gaussian (over ``scales_px``, px) of the contrast image ``C = 1 - I / B`` (I: brightest
+    channel blurred by ``blur_sigma`` px; B: its grey closing by a ``background_px`` disc, the local skin).
+    A peak is a dot when its estimated contrast reaches ``1 - darkness`` (the dot darker than ``darkness``
+    times the skin around it) and ``noise_sigmas`` times the response's robust noise, the ratio of its
+    principal curvatures is <= ``max_elongation`` and its blob (pixels darker than half its contrast) has
+    [min_area, max_area] px. ``chroma`` > 0: the blob's darkest pixel must be less saturated than
+    ``chroma`` times the skin (grey paint under white light; 0 = off)."""
 
+    darkness: float = 0.85
+    noise_sigmas: float = 3.5
+    chroma: float = 0.0
+    background_px: int = 15
+    blur_sigma: float = 0.7
+    scales_px: tuple[float, ...] = (1.0, 1.4, 2.0, 2.8)
+    max_elongation: float = 3.0
+    min_area: int = 3
+    max_area: int = 400
+
+
+DOT_DETECTORS = ("threshold", "contrast")
+
+
+@dataclass
+class DotParams:
+    """Dot detection. ``detector``: ``threshold`` (a pixel is a dot pixel when its brightest channel is below
+    ``darkness`` times the local background (max filter over ``background_px``) and its red-minus-blue is below
+    ``chroma`` times the background; components with area in [min_area, max_area] px and fill ratio
+    (area / bounding-box area) >= ``min_fill`` are dots: grey paint on a bright painted speckle) or
+    ``contrast`` (:class:`ContrastDotParams`: dots of any hue under shading, highlights and a sensor)."""
+
+    detector: str = "threshold"
     darkness: float = 0.35
     chroma: float = 0.12
     background_px: int = 15
@@ -33,6 +60,7 @@ class DotParams:
     min_area: int = 3
     max_area: int = 400
     min_fill: float = 0.35
+    contrast: ContrastDotParams = field(default_factory=ContrastDotParams)
 
 
 @dataclass
@@ -180,6 +208,9 @@ def _check(p: TrackParams) -> TrackParams:
     if bad or not p.levels:
         raise InputError(f"unknown tracking levels {bad}" if bad else "params.track.levels is empty",
                          path="config params.track.levels", fix=f"use a subset of {list(LEVELS)}")
+    if p.dots.detector not in DOT_DETECTORS:
+        raise InputError(f"unknown dot detector '{p.dots.detector}'", path="config params.track.dots.detector",
+                         fix=f"use one of {list(DOT_DETECTORS)}")
     if p.flow.preset not in FLOW_PRESETS:
         raise InputError(f"unknown flow preset '{p.flow.preset}'", path="config params.track.flow.preset",
                          fix=f"use one of {list(FLOW_PRESETS)}")
