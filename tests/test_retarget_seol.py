@@ -262,6 +262,25 @@ def test_spacetime_solve_with_gaps_matches_dense_energy_minimizer(beta_kind):
     assert np.abs(Wwin - sub.solve(wm, W[5:15])).max() < 1e-9
 
 
+def test_unconstrained_baseline_when_the_seen_markers_leave_a_shape_unobserved():
+    """Occlusion gaps can hide every marker a shape moves: that frame gets the minimum-norm least-squares
+    weights (the shape at 0) instead of a singular system."""
+    rng = np.random.default_rng(0)
+    M, K, F = 6, 3, 4
+    B = rng.normal(size=(3 * M, K))
+    B[:, 2] = 0.0
+    B[:3, 2] = rng.normal(size=3)  # shape 2 moves marker 0 only
+    W_true = rng.uniform(0, 1, (F, K))
+    S = W_true @ B.T
+    vis = np.ones((F, M), bool)
+    vis[1, 0] = False  # frame 1: marker 0 occluded
+    W = solve_perframe_unconstrained(B, S, vis)
+    assert np.all(np.isfinite(W))
+    np.testing.assert_allclose(W[[0, 2, 3]], W_true[[0, 2, 3]], atol=1e-9)
+    np.testing.assert_allclose(W[1, :2], W_true[1, :2], atol=1e-9)
+    assert abs(W[1, 2]) < 1e-9
+
+
 def test_gap_aware_baselines_and_velocity_error():
     B, S, prior, P, p = _random_problem(F=10)
     F, M, K = S.shape[0], B.shape[0] // 3, B.shape[1]

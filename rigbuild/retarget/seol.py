@@ -800,11 +800,15 @@ def _perframe_normal(B: np.ndarray, S: np.ndarray, visibility: np.ndarray | None
 
 def solve_perframe_unconstrained(B: np.ndarray, S: np.ndarray, visibility: np.ndarray | None = None) -> np.ndarray:
     """"No Const": ``min ||B w_t - s_t||^2`` per frame (least squares over the markers seen at t when
-    ``visibility`` (F, M) is given). B (3M, K), S (F, 3M) -> (F, K)."""
+    ``visibility`` (F, M) is given). B (3M, K), S (F, 3M) -> (F, K). Where the markers seen at t leave shapes
+    unobserved (occlusion gaps), the minimum-norm least-squares weights (those shapes at 0)."""
     Gt, rhs = _perframe_normal(B, S, visibility)
     if Gt is None:
         return np.linalg.lstsq(B, np.asarray(S).T, rcond=None)[0].T
-    return np.linalg.solve(Gt, rhs[..., None])[..., 0]
+    try:
+        return np.linalg.solve(Gt, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return (np.linalg.pinv(Gt, hermitian=True) @ rhs[..., None])[..., 0]
 
 
 def solve_perframe_prior(B: np.ndarray, S: np.ndarray, prior_P: np.ndarray, prior_p: np.ndarray,
