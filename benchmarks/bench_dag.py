@@ -16,7 +16,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import print_table, write_result  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIGS = ["config/config.yaml", "config/demo-realistic.yaml", "config/ict.yaml", "config/ict-large.yaml"]
+CONFIGS = ["config/config.yaml", "config/demo-clean.yaml", "config/ict.yaml", "config/ict-large.yaml"]
 
 
 def dry_run_seconds(config: str) -> tuple[float, int | None, str]:

@@ -149,25 +149,25 @@ def test_every_file_written_is_a_declared_output(e2e_run):
     assert len(declared) > 50 and not undeclared, undeclared[:20]
 
 
-#: loose per-stage bounds on the tiny session: far from the goals (rigbuild/report/thresholds.py), but a
-#: broken stage (garbage cameras, surfaces, tracks, rig or weights) lands outside them. The demo session's
-#: numbers (4 x 9 ROM frames, 20 poses) for scale: rms 0.08 px, centre 0.16 mm, median 0.10 mm, completeness
-#: 0.92, tracking 0.26 / 0.62 mm (mean / p95, whole face mask), residual reduction 0.49 (unweighted),
-#: correlations 0.91 (ribera_fit) and 0.90 (seol), weight MAE 0.04 / 0.06.
+#: loose per-stage bounds on the tiny session (the demo's realistic capture, 2 x 5 ROM frames, 12 poses): far
+#: from the goals (rigbuild/report/thresholds.py), but a broken stage (garbage cameras, surfaces, tracks, rig or
+#: weights) lands outside them. That session gave rms 0.10 px, centre 0.65 mm, median 0.46 mm, completeness 0.80,
+#: tracking 2.04 / 4.25 mm (mean / p95, whole face mask; the head moves 10 mm and 8 degrees), residual reduction
+#: 0.31, correlations 0.72 (ribera_fit) and 0.69 (seol), weight MAE 0.21 / 0.28.
 STAGE_BOUNDS = {
     "calibration.rms_px": ("<", 0.5),
     "calibration.center_error_mm": ("<", 2.0),
-    "reconstruction.median_error_mm": ("<", 0.5),
-    "reconstruction.completeness": (">", 0.7),
-    "tracking.mean_error_mm": ("<", 2.0),
-    "tracking.p95_error_mm": ("<", 5.0),
-    "tracking.visible_mean_error_mm": ("<", 2.0),
+    "reconstruction.median_error_mm": ("<", 1.0),
+    "reconstruction.completeness": (">", 0.6),
+    "tracking.mean_error_mm": ("<", 4.0),
+    "tracking.p95_error_mm": ("<", 8.0),
+    "tracking.visible_mean_error_mm": ("<", 4.0),
     "personalization.residual_reduction": (">", 0.0),
     "personalization.residual_reduction_weighted": (">", 0.0),
     "retarget.ribera_fit.template.mean_correlation": (">", 0.5),
-    "retarget.ribera_fit.template.weight_mae": ("<", 0.15),
+    "retarget.ribera_fit.template.weight_mae": ("<", 0.5),
     "retarget.seol.template.mean_correlation": (">", 0.5),
-    "retarget.seol.template.weight_mae": ("<", 0.15),
+    "retarget.seol.template.weight_mae": ("<", 0.5),
 }
 
 
