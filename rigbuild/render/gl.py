@@ -393,34 +393,34 @@ class _GL:
 
     def float_texture(self, image: np.ndarray):
         """GL texture (mipmapped, repeat) of an (H, W, 3) float32 image, cached per array (material maps)."""
-        dead = [k for k, (ref, _) in self._textures.items() if ref() is None]
-        for k in dead:
-            self._textures.pop(k)[1].release()
-        hit = self._textures.get(id(image))
-        if hit is not None and hit[0]() is image:
-            return hit[1]
-        data = np.ascontiguousarray(image[::-1], dtype="f4")
-        tex = self.ctx.texture((image.shape[1], image.shape[0]), 3, data.tobytes(), dtype="f4")
-        tex.build_mipmaps()
-        tex.filter = (self.moderngl.LINEAR_MIPMAP_LINEAR, self.moderngl.LINEAR)
-        tex.repeat_x = tex.repeat_y = True
-        self._textures[id(image)] = (weakref.ref(image), tex)
-        return tex
+        def upload(img):
+            data = np.ascontiguousarray(img[::-1], dtype="f4")
+            return self.ctx.texture((img.shape[1], img.shape[0]), 3, data.tobytes(), dtype="f4")
+
+        return self._cached_texture(image, upload, anisotropic=False)
 
     # ------------------------------------------------------------------ caches
     def texture(self, image: np.ndarray):
         """GL texture (mipmapped, anisotropic, repeat) of an (H, W, 3) uint8 image, cached per array."""
+        def upload(img):
+            data = np.ascontiguousarray(img[::-1])  # GL row 0 = texture v = 0 = bottom image row (OBJ)
+            return self.ctx.texture((img.shape[1], img.shape[0]), 3, data.tobytes(), alignment=1)
+
+        return self._cached_texture(image, upload, anisotropic=True)
+
+    def _cached_texture(self, image: np.ndarray, upload, anisotropic: bool):
+        """The texture ``upload(image)`` made for this very array (mipmapped, repeat), cached while it lives."""
         dead = [k for k, (ref, _) in self._textures.items() if ref() is None]
         for k in dead:
             self._textures.pop(k)[1].release()
         hit = self._textures.get(id(image))
         if hit is not None and hit[0]() is image:
             return hit[1]
-        data = np.ascontiguousarray(image[::-1])  # GL row 0 = texture v = 0 = bottom image row (OBJ)
-        tex = self.ctx.texture((image.shape[1], image.shape[0]), 3, data.tobytes(), alignment=1)
+        tex = upload(image)
         tex.build_mipmaps()
         tex.filter = (self.moderngl.LINEAR_MIPMAP_LINEAR, self.moderngl.LINEAR)
-        tex.anisotropy = min(ANISOTROPY, self.ctx.max_anisotropy)
+        if anisotropic:
+            tex.anisotropy = min(ANISOTROPY, self.ctx.max_anisotropy)
         tex.repeat_x = tex.repeat_y = True
         self._textures[id(image)] = (weakref.ref(image), tex)
         return tex

@@ -15,6 +15,16 @@ from rigbuild.camera import Camera
 from rigbuild.track.params import ContrastDotParams, DotParams
 
 
+def _mask_box(mask: np.ndarray, pad: int) -> tuple[int, int, int, int] | None:
+    """(y0, y1, x0, x1): the box of ``mask``'s (H, W) True pixels grown by ``pad`` px and clipped to the image;
+    None when the mask is empty."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if rows.size == 0:
+        return None
+    H, W = mask.shape
+    return max(rows[0] - pad, 0), min(rows[-1] + pad + 1, H), max(cols[0] - pad, 0), min(cols[-1] + pad + 1, W)
+
+
 def detect_dots(image_rgb: np.ndarray, params: DotParams | None = None, mask: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Detect painted dots in an RGB image (H, W, 3) uint8 with ``params.detector``: ``threshold`` (dark grey
@@ -38,14 +48,11 @@ def _detect_threshold(image_rgb: np.ndarray, p: DotParams, mask: np.ndarray | No
     the local background and its red-minus-blue below ``chroma`` times it; components of [min_area, max_area]
     px and fill ratio >= ``min_fill`` are dots (darkness-weighted centroids)."""
     if mask is not None:  # work on the mask's box, padded past the blur and background filters' reach
-        rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
-        if rows.size == 0:
+        box = _mask_box(mask, p.background_px + int(np.ceil(4 * p.blur_sigma)) + 2)
+        if box is None:
             return np.zeros((0, 2)), np.zeros(0)
-        pad = p.background_px + int(np.ceil(4 * p.blur_sigma)) + 2
-        H, W = mask.shape
-        y0, y1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, H)
-        x0, x1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, W)
-        if (y0, y1, x0, x1) != (0, H, 0, W):
+        y0, y1, x0, x1 = box
+        if box != (0, mask.shape[0], 0, mask.shape[1]):
             c, a = _detect_threshold(np.asarray(image_rgb)[y0:y1, x0:x1], p, mask[y0:y1, x0:x1])
             return c + [x0, y0], a
     img = np.asarray(image_rgb, dtype=np.float32)
@@ -133,14 +140,11 @@ def _detect_contrast(image_rgb: np.ndarray, p: ContrastDotParams, mask: np.ndarr
         mask = cv2.morphologyEx(np.asarray(mask, np.uint8), cv2.MORPH_CLOSE,
                                 cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
         mask = _fill_small_holes(mask, p.max_area)
-        rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
-        if rows.size == 0:
+        box = _mask_box(mask, p.background_px + int(np.ceil(4 * (p.blur_sigma + max(p.scales_px)))) + 2)
+        if box is None:
             return np.zeros((0, 2)), np.zeros(0)
-        pad = p.background_px + int(np.ceil(4 * (p.blur_sigma + max(p.scales_px)))) + 2
-        H, W = mask.shape
-        y0, y1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, H)
-        x0, x1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, W)
-        if (y0, y1, x0, x1) != (0, H, 0, W):
+        y0, y1, x0, x1 = box
+        if box != (0, mask.shape[0], 0, mask.shape[1]):
             c, a = _contrast_peaks(np.asarray(image_rgb)[y0:y1, x0:x1], p, mask[y0:y1, x0:x1])
             return c + [x0, y0], a
     return _contrast_peaks(image_rgb, p, mask)
