@@ -145,8 +145,10 @@ def capture_images(session, paths):
 
 def calib_images(session):
     """A real capture's calibration images (none listed for a synthetic session: see capture_images)."""
+    if is_synthetic(session):
+        return []
     spec = session_spec(session)
-    return capture_images(session, [p for cam in spec.cameras for p in spec.calib_images(cam)])
+    return [str(p) for cam in spec.cameras for p in spec.calib_images(cam)]
 
 
 def ground_truth_file(session, relpath):

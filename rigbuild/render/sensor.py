@@ -382,9 +382,9 @@ def to_srgb8(linear: np.ndarray) -> np.ndarray:
 
 def from_srgb8(rgb8: np.ndarray) -> np.ndarray:
     """Inverse of :func:`to_srgb8`: uint8 sRGB (any shape) -> linear float32 in 0..1."""
-    y = np.asarray(rgb8, dtype=np.float32) / np.float32(255.0)
-    return np.where(y <= 0.04045, y / np.float32(12.92),
-                    np.power((y + np.float32(0.055)) / np.float32(1.055), np.float32(2.4))).astype(np.float32)
+    from rigbuild.render.common import srgb_to_linear
+
+    return srgb_to_linear(np.asarray(rgb8, dtype=np.float32) / np.float32(255.0))
 
 
 def jpeg_round_trip(rgb8: np.ndarray, quality: int | None) -> np.ndarray:
