@@ -432,3 +432,13 @@ def test_ict_head_gl_matches_embree_at_full_resolution(ict_rig):
         # every face vertex in view projects onto the rendered head
         uv = cam.project(rig.neutral[:6706])
         assert np.all((uv >= 0) & (uv <= [cam.width - 1, cam.height - 1]))
+
+
+def test_make_camera_rig_k3_range_leaves_the_rest_of_the_layout():
+    plain = make_camera_rig(8, seed=4)
+    with_k3 = make_camera_rig(8, seed=4, k3_range=(-0.05, 0.05))
+    k3 = np.array([c.dist[4] for c in with_k3])
+    assert np.all(np.abs(k3) <= 0.05) and np.ptp(k3) > 0.02 and all(c.dist[4] == 0 for c in plain)
+    for a, b in zip(plain, with_k3):
+        assert np.array_equal(a.K, b.K) and np.array_equal(a.R, b.R) and np.array_equal(a.dist[:4], b.dist[:4])
+        assert np.abs(a.dist[2:4]).max() > 0  # tangential terms are drawn on every lens

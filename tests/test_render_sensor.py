@@ -288,3 +288,30 @@ def test_params_from_dict_unknown_key_did_you_mean():
         S.SensorParams.from_dict({"f_numbr": 8})
     msg = str(e.value)
     assert "synthetic.camera.f_numbr" in msg and "did you mean 'f_number'" in msg
+
+
+# ------------------------------------------------------------------ per-camera offsets
+def test_camera_sensor_offsets_are_log_normal_per_camera():
+    p = S.SensorParams(exposure=2.0, white_balance=(1.5, 1.0, 1.2), exposure_sd=0.1, white_balance_sd=0.05)
+    ids = [f"cam{i:03d}" for i in range(4000)]
+    per_cam = [S.camera_sensor(p, c, seed=7) for c in ids]
+    log_e = np.log([q.exposure / 2.0 for q in per_cam])
+    log_r = np.log([q.white_balance[0] / 1.5 for q in per_cam])
+    log_b = np.log([q.white_balance[2] / 1.2 for q in per_cam])
+    n = len(ids)
+    for logs, sd in ((log_e, 0.1), (log_r, 0.05), (log_b, 0.05)):
+        assert abs(logs.mean()) < 4 * sd / math.sqrt(n)
+        assert logs.std() == pytest.approx(sd, rel=4 / math.sqrt(2 * n))  # 4 sigma of the sample sd
+    assert all(q.white_balance[1] == 1.0 for q in per_cam)  # green is the reference channel
+    again = S.camera_sensor(p, "cam003", seed=7)
+    assert (again.exposure, again.white_balance) == (per_cam[3].exposure, per_cam[3].white_balance)
+    assert S.camera_sensor(p, "cam003", seed=8).exposure != per_cam[3].exposure
+    matched = S.SensorParams()
+    assert S.camera_sensor(matched, "cam003", seed=7) is matched
+
+
+@pytest.mark.parametrize("key", ["exposure_sd", "white_balance_sd"])
+def test_camera_offsets_reject_negative_sd(key):
+    with pytest.raises(InputError) as e:
+        S.SensorParams.from_dict({key: -0.1})
+    assert f"synthetic.camera.{key}" in str(e.value)

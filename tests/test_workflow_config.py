@@ -109,6 +109,8 @@ def test_run_sessions_selects_and_names_unknown(tmp_path):
     ({"camera": {"f_number": 0}}, "camera.f_number", "fix:"),
     ({"camera": {"f_numbr": 8}}, "camera.f_numbr", "did you mean 'f_number'"),
     ({"performance": {"marker_placement_sd_mm": -2.0}}, "performance.marker_placement_sd_mm", ">= 0"),
+    ({"distortion_k3": [0.1, -0.1]}, "distortion_k3", "lo <= hi"),
+    ({"camera": {"exposure_sd": -0.1}}, "camera.exposure_sd", "matched cameras"),
 ])
 def test_bad_realism_keys_fail_at_dag_start_with_the_key_and_the_fix(tmp_path, synthetic, key, fix):
     r = _dry_run(tmp_path, {"sessions": {"s": {"path": str(tmp_path / "s"), "synthetic": synthetic}},

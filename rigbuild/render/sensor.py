@@ -67,6 +67,10 @@ class SensorParams:
     focus_distance_mm : camera depth in focus, mm (None = the median depth of the visible surface).
     pixel_pitch_mm : sensor pixel pitch, mm (focal length in mm = fx * pitch).
     motion_blur_samples : sub-frame samples integrating the motion over the exposure (1 = no blur).
+    exposure_sd : per-camera exposure offset of a rig whose cameras are not matched: camera ``c`` exposes
+        ``exposure * exp(N(0, exposure_sd^2))`` (log-normal, drawn once per camera; 0 = matched cameras).
+    white_balance_sd : per-camera white-balance offset: the red and blue gains of camera ``c`` are multiplied
+        by ``exp(N(0, white_balance_sd^2))`` each (green fixed; 0 = matched cameras). See :func:`camera_sensor`.
     """
 
     exposure: float = 1.0
@@ -83,6 +87,8 @@ class SensorParams:
     focus_distance_mm: Optional[float] = None
     pixel_pitch_mm: float = 0.00375
     motion_blur_samples: int = 5
+    exposure_sd: float = 0.0
+    white_balance_sd: float = 0.0
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> "SensorParams":
@@ -120,6 +126,10 @@ class SensorParams:
                          ("pixel_pitch_mm", "machine-vision pixels are 0.002-0.006 mm")):
             if not number(key) > 0:
                 raise bad(key, getattr(self, key), "> 0", f"set {WHERE}.{key} to a positive value ({fix})")
+        for key in ("exposure_sd", "white_balance_sd"):
+            if number(key) < 0:
+                raise bad(key, getattr(self, key), ">= 0 (a standard deviation of the log gain)",
+                          f"set {WHERE}.{key} to 0 (matched cameras) or a typical 0.05-0.2")
         if number("read_noise_e") < 0:
             raise bad("read_noise_e", self.read_noise_e, ">= 0 (a standard deviation)",
                       f"set {WHERE}.read_noise_e to 0 (no read noise) or a typical 2-10 electrons")
@@ -159,6 +169,23 @@ class SensorParams:
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise bad("motion_blur_samples", n, "an integer >= 1",
                       f"set {WHERE}.motion_blur_samples to 1 (no blur) or e.g. 5")
+
+
+def camera_sensor(params: SensorParams, camera_id: str, seed: int) -> SensorParams:
+    """The sensor of one camera of a rig: ``params`` with its exposure and white balance offset by a
+    log-normal draw (``params.exposure_sd``, ``params.white_balance_sd``) from a generator seeded by ``seed``
+    and ``camera_id`` (the same camera gets the same offsets in every image of a session). Returns ``params``
+    itself when both standard deviations are 0."""
+    if not params.exposure_sd and not params.white_balance_sd:
+        return params
+    import zlib
+
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, zlib.crc32(camera_id.encode("utf-8")), 71])
+    z = rng.standard_normal(3)
+    exposure = float(params.exposure) * math.exp(float(params.exposure_sd) * z[0])
+    r, g, b = (float(x) for x in params.white_balance)
+    wb = (r * math.exp(float(params.white_balance_sd) * z[1]), g, b * math.exp(float(params.white_balance_sd) * z[2]))
+    return dataclasses.replace(params, exposure=exposure, white_balance=wb)
 
 
 # ------------------------------------------------------------------ optics

@@ -31,7 +31,7 @@ class CaptureSetup:
     rendered triangles (ICT's transparent eye overlays dropped with the realistic skin); material : a
     :class:`rigbuild.render.lights.Material` or None; lights : list of Light or None (the single Lambert light);
     sensor : SensorParams or None; shutter : exposure as a fraction of the frame interval; noise_sigma : the
-    8-bit noise without a sensor; msaa : anti-aliasing.
+    8-bit noise without a sensor; msaa : anti-aliasing; seed : the session seed (per-camera sensor offsets).
     """
 
     texture: np.ndarray
@@ -44,10 +44,17 @@ class CaptureSetup:
     shutter: float
     noise_sigma: float
     msaa: bool
+    seed: int = 0
 
     @property
     def linear(self) -> bool:
         return self.sensor is not None
+
+    def sensor_for(self, camera):
+        """This camera's sensor: the session's, with the camera's own exposure and white-balance offsets."""
+        from rigbuild.render.sensor import camera_sensor
+
+        return camera_sensor(self.sensor, camera.id, self.seed)
 
 
 def check_capture_keys(p: Mapping[str, Any], where: str) -> None:
@@ -111,7 +118,7 @@ def capture_setup(p: Mapping[str, Any], actor, cameras: Sequence, face_centre: n
 
         sensor = SensorParams.from_dict(p["camera"])
     return CaptureSetup(texture, uvs, face_uvs, faces, material, lights, sensor, float(p["shutter"]),
-                        float(p["noise_sigma"]), bool(p["msaa"]))
+                        float(p["noise_sigma"]), bool(p["msaa"]), seed)
 
 
 def exposure_motion(verts: np.ndarray, i: int, shutter: float) -> np.ndarray:
@@ -141,7 +148,7 @@ def capture_face(camera, setup: CaptureSetup, vertices: np.ndarray, seed: int, m
 
     res = render_mesh(camera, mesh, lights=setup.lights, material=setup.material, output="linear", msaa=setup.msaa,
                       seed=seed, with_geometry=setup.sensor.f_number is not None, with_motion=blur)
-    return apply_sensor(res.linear, camera, setup.sensor, noise_rng(camera, seed), depth_mm=res.depth,
+    return apply_sensor(res.linear, camera, setup.sensor_for(camera), noise_rng(camera, seed), depth_mm=res.depth,
                         motion_px=res.motion_px if blur else None)
 
 
@@ -157,5 +164,5 @@ def capture_board(camera, setup: CaptureSetup, board, R_board: np.ndarray, t_boa
     from rigbuild.render.sensor import apply_sensor
 
     linear = render_board(camera, board, R_board, t_board, msaa=setup.msaa, seed=seed, output="linear")
-    still = dataclasses.replace(setup.sensor, f_number=None)  # boards: rendered without depth, so in focus
+    still = dataclasses.replace(setup.sensor_for(camera), f_number=None)  # boards: rendered without depth, so in focus
     return apply_sensor(linear, camera, still, noise_rng(camera, seed))

@@ -36,6 +36,7 @@ def make_camera_rig(
     seed: int = 0,
     frame_height_mm: float = 260.0,
     row_elevation_deg: float = 12.0,
+    k3_range: tuple[float, float] = (0.0, 0.0),
 ) -> list[Camera]:
     """Cameras on an arc (or two stacked arcs) around a face, OpenCV model with small Brown distortion.
 
@@ -51,7 +52,10 @@ def make_camera_rig(
     target : (3,) look-at point, mm (each camera's aim is jittered by a few mm).
     focal_px : nominal focal length, pixels (None: the face frame of ``frame_height_mm`` fills the
         image height at ``distance_mm``). Each camera's focal is jittered by +-2 %, fx/fy by +-0.2 %.
-    distortion_scale : multiplies the random distortion (k1 in [-0.1, 0.1], k2, p1, p2 of order 1e-3, k3 = 0).
+    distortion_scale : multiplies the random distortion (k1 in [-0.1, 0.1], k2 in [-2e-3, 2e-3], tangential
+        p1, p2 in [-1e-3, 1e-3]).
+    k3_range : [lo, hi] of the sixth-order radial term k3, drawn per camera (times ``distortion_scale``) from
+        its own generator, so that the rest of the layout does not depend on it; (0, 0): k3 = 0.
     seed : random seed (deterministic layout per seed).
     frame_height_mm : object-space height framed by the nominal focal at ``distance_mm``.
     row_elevation_deg : elevation of the two rows.
@@ -85,6 +89,9 @@ def make_camera_rig(
                 az = np.clip(az + step / 2.0, a0, a1) if m < per_row[0] else az
         layout += [(float(a), el) for a in az]
 
+    k3_lo, k3_hi = (float(x) for x in k3_range)
+    k3 = np.random.default_rng([int(seed) & 0xFFFFFFFF, 3]).uniform(k3_lo, k3_hi, len(layout)) \
+        if (k3_lo, k3_hi) != (0.0, 0.0) else np.zeros(len(layout))
     cameras = []
     for i, (az, el) in enumerate(layout):
         azr, elr = np.deg2rad(az), np.deg2rad(el)
@@ -103,7 +110,7 @@ def make_camera_rig(
         K = np.array([[f, 0.0, cx], [0.0, f * aspect, cy], [0.0, 0.0, 1.0]])
         s = float(distortion_scale)
         dist = np.array([rng.uniform(-0.1, 0.1) * s, rng.uniform(-2e-3, 2e-3) * s,
-                         rng.uniform(-1e-3, 1e-3) * s, rng.uniform(-1e-3, 1e-3) * s, 0.0])
+                         rng.uniform(-1e-3, 1e-3) * s, rng.uniform(-1e-3, 1e-3) * s, k3[i] * s])
         cameras.append(Camera(f"cam{i:02d}", width, height, K, dist, R, t))
     return cameras
 

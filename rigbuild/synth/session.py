@@ -30,6 +30,8 @@ SYNTH_DEFAULTS: dict[str, Any] = {
     "camera_arc_deg": [-60.0, 60.0],
     "camera_rows": 1,
     "distortion_scale": 1.0,
+    # [lo, hi] of the lenses' k3 (sixth-order radial distortion), drawn per camera; [0, 0]: k3 = 0
+    "distortion_k3": [0.0, 0.0],
     "noise_sigma": 1.5,
     # spacing (mm) of the registration dots painted between the markers (rigbuild.dots); None: markers only
     "dot_stencil_mm": None,
@@ -238,7 +240,8 @@ def _write_cameras(gt: Path, spec, p: dict, name: str, face_centre: np.ndarray) 
     cameras = make_camera_rig(n_cameras=len(spec.cameras), width=spec.width, height=spec.height,
                               distance_mm=float(p["camera_distance_mm"]), arc_deg=tuple(p["camera_arc_deg"]),
                               rows=int(p["camera_rows"]), target=face_centre,
-                              distortion_scale=float(p["distortion_scale"]), seed=int(p["seed"]))
+                              distortion_scale=float(p["distortion_scale"]), seed=int(p["seed"]),
+                              k3_range=tuple(float(x) for x in p["distortion_k3"]))
     write_cameras(gt / "cameras.json", cameras, session=name)
     return cameras
 
@@ -376,6 +379,10 @@ def check_synthetic(synthetic: dict | None, where: str) -> dict:
         if value is not None and float(value) < 0:
             raise InputError(f"field '{where}.{key}' is {value}: it cannot be negative", path="config",
                              fix=f"give {key.split('.')[-1]} >= 0")
+    lo, hi = (float(x) for x in p["distortion_k3"])
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo <= hi):
+        raise InputError(f"field '{where}.distortion_k3' is {p['distortion_k3']}", path="config",
+                         fix="give [lo, hi] with lo <= hi (typical lenses: within [-0.2, 0.2])")
     if r["head_bound"] not in ("per_axis", "total"):
         raise InputError(f"field '{where}.rom.head_bound' is {r['head_bound']!r}", path="config",
                          fix="use per_axis or total")
