@@ -15,12 +15,20 @@ from rigbuild.io.atomic import atomic_path
 
 @dataclass
 class ObjMesh:
-    """vertices (V, 3); uvs (T, 2) or None; faces (F, 3) triangles; face_uvs (F, 3) or None."""
+    """vertices (V, 3); uvs (T, 2) or None; faces (F, 3) triangles; face_uvs (F, 3) or None;
+    face_text: the file's ``f`` lines as written (bytes, one per line; a cheap same-face-list test before
+    :func:`face_vertex_lists` parses them)."""
 
     vertices: np.ndarray
     faces: np.ndarray
     uvs: np.ndarray | None = None
     face_uvs: np.ndarray | None = None
+    face_text: bytes = b""
+
+
+def face_vertex_lists(face_text: bytes) -> list[tuple[int, ...]]:
+    """The vertex indices (as written, 1-based or negative) of every polygon in ``f`` lines ``face_text``."""
+    return [tuple(int(c.split(b"/")[0]) for c in line.split()[1:]) for line in face_text.splitlines() if line.strip()]
 
 
 def _floats(lines: list[bytes], ncols: int, path: Path) -> np.ndarray:
@@ -37,7 +45,9 @@ def _floats(lines: list[bytes], ncols: int, path: Path) -> np.ndarray:
 def read_obj(path: str | os.PathLike, positions_only: bool = False) -> ObjMesh:
     """Read an OBJ. Polygons are fan-triangulated; indices become 0-based.
 
-    ``positions_only`` skips faces and UVs (used for the many same-topology expression OBJs).
+    ``positions_only`` skips parsing faces and UVs (used for the many same-topology expression OBJs); the
+    ``f`` lines are still kept as ``face_text`` so that a reader can check a shape's face list against its
+    neutral's.
     """
     path = Path(path)
     if not path.exists():
@@ -47,20 +57,19 @@ def read_obj(path: str | os.PathLike, positions_only: bool = False) -> ObjMesh:
         for line in fh:
             if line.startswith(b"v "):
                 v.append(line)
-            elif positions_only:
-                continue
-            elif line.startswith(b"vt "):
-                vt.append(line)
             elif line.startswith(b"f "):
                 f.append(line)
+            elif line.startswith(b"vt ") and not positions_only:
+                vt.append(line)
     try:
         verts = _floats(v, 3, path)
     except ValueError as exc:
         raise InputError(f"malformed vertex line ({exc})", path=path) from None
     if verts.shape[0] == 0:
         raise InputError("no vertices ('v' lines) in OBJ", path=path, fix="check the file is a complete OBJ")
+    face_text = b"".join(f)
     if positions_only:
-        return ObjMesh(verts, np.zeros((0, 3), np.int64))
+        return ObjMesh(verts, np.zeros((0, 3), np.int64), face_text=face_text)
     uvs = _floats(vt, 2, path) if vt else None
     tri_v, tri_t = [], []
     has_uv = uvs is not None
@@ -84,7 +93,7 @@ def read_obj(path: str | os.PathLike, positions_only: bool = False) -> ObjMesh:
         face_uvs = np.where(face_uvs > 0, face_uvs - 1, face_uvs + uvs.shape[0])
         if face_uvs.min() < 0:
             face_uvs = None
-    return ObjMesh(verts, faces, uvs, face_uvs)
+    return ObjMesh(verts, faces, uvs, face_uvs, face_text)
 
 
 def write_obj(

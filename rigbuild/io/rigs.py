@@ -23,7 +23,7 @@ import numpy as np
 
 from rigbuild.errors import InputError
 from rigbuild.io.atomic import atomic_path, save_npz, write_json
-from rigbuild.io.obj import read_obj, write_obj
+from rigbuild.io.obj import ObjMesh, face_vertex_lists, read_obj, write_obj
 from rigbuild.rig import Rig
 
 ICT_NEUTRAL = "generic_neutral_mesh.obj"
@@ -31,6 +31,28 @@ ICT_NEUTRAL = "generic_neutral_mesh.obj"
 ICT_FACE_VERTICES = (0, 9409)
 ICT_NARROW_FACE_VERTICES = (0, 6706)
 ICT_HEAD_VERTICES = (0, 11248)
+
+
+def read_shape_positions(path: Path, base: ObjMesh, neutral_name: str) -> np.ndarray:
+    """Vertex positions (V, 3) of a shape OBJ ``path`` that must share the neutral ``base``'s topology: the
+    same vertex count and the same face list (a shape exported with another vertex order has the count but
+    not the faces). InputError naming the file otherwise."""
+    mesh = read_obj(path, positions_only=True)
+    fix = (f"export every shape with {neutral_name}'s vertex count and order (Blender: Keep Vertex Order; "
+           "Maya: export the blendshape targets of the one base mesh)")
+    if mesh.vertices.shape != base.vertices.shape:
+        raise InputError(f"topology differs from {neutral_name}: {mesh.vertices.shape[0]} vs "
+                         f"{base.vertices.shape[0]} vertices", path=path, fix=fix)
+    if mesh.face_text != base.face_text:
+        mine, theirs = face_vertex_lists(mesh.face_text), face_vertex_lists(base.face_text)
+        if mine != theirs:
+            first = next((i for i, (a, b) in enumerate(zip(mine, theirs)) if a != b), min(len(mine), len(theirs)))
+            got = mine[first] if first < len(mine) else "none"
+            want = theirs[first] if first < len(theirs) else "none"
+            raise InputError(f"face list differs from {neutral_name}'s ({len(mine)} vs {len(theirs)} faces; face "
+                             f"{first + 1}: vertices {got} vs {want}): the shape's vertices are in another order",
+                             path=path, fix=fix)
+    return mesh.vertices
 
 
 def read_ict_rig(
@@ -76,16 +98,13 @@ def read_ict_rig(
         p = folder / f"{name}.obj"
         if not p.exists():
             raise InputError(f"expression '{name}' not found", path=p, fix="check the shape name against the folder")
-        v = read_obj(p, positions_only=True).vertices
-        if v.shape != neutral.shape:
-            raise InputError(f"topology differs from {ICT_NEUTRAL}: {v.shape[0]} vs {neutral.shape[0]} vertices", path=p)
-        deltas[k] = v - neutral
+        deltas[k] = read_shape_positions(p, base, ICT_NEUTRAL) - neutral
     if identity is not None:
         for i, c in enumerate(identity):
             p = folder / f"identity{i:03d}.obj"
             if not p.exists():
                 raise InputError(f"identity mode {i} not found", path=p, fix=f"use at most {i} identity coefficients")
-            neutral = neutral + float(c) * (read_obj(p, positions_only=True).vertices - base.vertices)
+            neutral = neutral + float(c) * (read_shape_positions(p, base, ICT_NEUTRAL) - base.vertices)
     landmarks = np.asarray(meta.get("idx_to_landmark_verts", []), dtype=np.int64)
     rig = Rig(
         neutral=neutral,
@@ -126,14 +145,7 @@ def read_obj_folder_rig(folder: str | os.PathLike, units: str | None = None) -> 
         p = folder / f"{name}.obj"
         if not p.exists():
             raise InputError(f"shape '{name}' listed in rig.json has no OBJ", path=p)
-        v = read_obj(p, positions_only=True).vertices
-        if v.shape != base.vertices.shape:
-            raise InputError(
-                f"topology differs from neutral.obj: {v.shape[0]} vs {base.vertices.shape[0]} vertices",
-                path=p,
-                fix="every shape OBJ must have the neutral's vertex count and order",
-            )
-        deltas[k] = v - base.vertices
+        deltas[k] = read_shape_positions(p, base, "neutral.obj") - base.vertices
     markers = meta.get("markers", {})
     rig = Rig(
         neutral=base.vertices,
@@ -261,11 +273,12 @@ def read_ict_identity_modes(folder: str | os.PathLike, n_modes: int, units: str 
     from rigbuild.rig import UNIT_TO_MM
 
     folder = Path(folder)
-    base = read_obj(folder / ICT_NEUTRAL, positions_only=True).vertices
+    base_mesh = read_obj(folder / ICT_NEUTRAL, positions_only=True)
+    base = base_mesh.vertices
     modes = []
     for i in range(n_modes):
         p = folder / f"identity{i:03d}.obj"
         if not p.exists():
             raise InputError(f"identity mode {i} not found", path=p, fix=f"use at most {i} identity modes")
-        modes.append(read_obj(p, positions_only=True).vertices - base)
+        modes.append(read_shape_positions(p, base_mesh, ICT_NEUTRAL) - base)
     return np.asarray(modes) * (UNIT_TO_MM["cm"] / UNIT_TO_MM[units])
