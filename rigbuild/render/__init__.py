@@ -110,9 +110,10 @@ def render_mesh(
         from rigbuild.render.gl import render_mesh as impl
     else:
         from rigbuild.render.embree import render_mesh as impl
-    return impl(camera, mesh, light_dir=light_dir, ambient=ambient, background=background,
-                noise_sigma=noise_sigma, seed=seed, msaa=msaa, with_color=with_color, with_geometry=with_geometry,
-                lights=lights, material=material, output=output, with_motion=with_motion)
+    from rigbuild.render.common import RenderOptions
+
+    return impl(camera, mesh, RenderOptions(light_dir, ambient, background, noise_sigma, seed, msaa, with_color,
+                                            with_geometry, lights, material, output, with_motion))
 
 
 from rigbuild.render.board import render_board  # noqa: E402  (board.py uses render_mesh above)

@@ -99,14 +99,9 @@ def render_board(
     R_board: np.ndarray,
     t_board: np.ndarray,
     light_dir=None,
-    ambient: float = 0.3,
-    background=128,
-    noise_sigma: float = 0.0,
-    seed: int | None = None,
-    msaa: bool = True,
-    backend: str = "auto",
     margin_mm: float | None = None,
     output: str = "srgb8",
+    **render_options,
 ) -> np.ndarray:
     """Render a calibration board through ``camera`` (with distortion) on a grey background.
 
@@ -117,9 +112,10 @@ def render_board(
     R_board, t_board : (3, 3), (3,) board-to-world pose, mm: ``X = R_board @ x_board + t_board``.
     light_dir : world direction towards the light (None: from the camera towards the board centre,
         i.e. a light at the camera, as rig lights are).
-    ambient, background, noise_sigma, seed, msaa, backend : as :func:`rigbuild.render.render_mesh`.
     margin_mm : white margin around the squares (None: half a square).
     output : ``"srgb8"`` (the image with noise) or ``"linear"`` (float32 radiance, white = 1, for a sensor model).
+    render_options : ``ambient``, ``background``, ``noise_sigma``, ``seed``, ``msaa``, ``backend``, as
+        :func:`rigbuild.render.render_mesh`.
 
     Returns
     -------
@@ -135,7 +131,5 @@ def render_board(
     mesh = board_mesh(board_spec, R_board, t_board, margin_mm, back=back)
     if light_dir is None:
         light_dir = camera.center - centre
-    res = render_mesh(camera, mesh, light_dir=light_dir, ambient=ambient, background=background,
-                      noise_sigma=noise_sigma, seed=seed, msaa=msaa, backend=backend, with_geometry=False,
-                      output=output)
+    res = render_mesh(camera, mesh, light_dir=light_dir, with_geometry=False, output=output, **render_options)
     return res.linear if output == "linear" else res.color

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -587,3 +588,35 @@ def finish_outputs(res: RenderResult, img: np.ndarray, lights, output: str, nois
     if with_motion:
         res.motion_px = motion_image(camera, mesh.vertices, mesh.faces, mesh.vertex_motion, res.tri_id, res.bary)
     return res
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """How :func:`rigbuild.render.render_mesh` shades and what it returns (one set of options for both
+    backends; each field is documented there): light_dir (3,) or None, ambient, background, noise_sigma
+    (8-bit levels), seed, msaa, with_color, with_geometry, lights, material, output, with_motion."""
+
+    light_dir: Any = None
+    ambient: float = 0.3
+    background: Any = 128
+    noise_sigma: float = 0.0
+    seed: Any = None
+    msaa: bool = True
+    with_color: bool = True
+    with_geometry: bool = True
+    lights: Any = None
+    material: Any = None
+    output: str = "srgb8"
+    with_motion: bool = False
+
+
+def empty_result(camera: Camera, mesh, opt: RenderOptions) -> RenderResult:
+    """What a render of a mesh without triangles returns: the background everywhere (colour through the same
+    noise and output conversion as a real render), NaN depth, tri_id -1, zero barycentrics."""
+    H, W = camera.height, camera.width
+    img = np.broadcast_to(background_rgb(opt.background).astype(np.float32), (H, W, 3))
+    res = RenderResult(finish_color(img, opt.noise_sigma, camera, opt.seed), np.full((H, W), np.nan, np.float32),
+                       np.full((H, W), -1, np.int32), np.zeros((H, W, 3), np.float32))
+    if opt.lights is not None:
+        img = srgb_to_linear(img / np.float32(255.0))
+    return finish_outputs(res, img, opt.lights, opt.output, opt.noise_sigma, camera, opt.seed, opt.with_motion, mesh)

@@ -14,8 +14,10 @@ import numpy as np
 
 from rigbuild.camera import Camera
 from rigbuild.render.common import (
+    RenderOptions,
     RenderResult,
     background_rgb,
+    empty_result,
     finish_color,
     finish_outputs,
     ggx_shade,
@@ -117,38 +119,21 @@ def sample_texture(texture: np.ndarray, uv: np.ndarray, lod: np.ndarray | None =
     return out
 
 
-def render_mesh(
-    camera: Camera,
-    mesh: TexturedMesh,
-    light_dir=None,
-    ambient: float = 0.3,
-    background=128,
-    noise_sigma: float = 0.0,
-    seed: int | None = None,
-    msaa: bool = True,
-    with_color: bool = True,
-    with_geometry: bool = True,
-    lights=None,
-    material=None,
-    output: str = "srgb8",
-    with_motion: bool = False,
-) -> RenderResult:
-    """Render ``mesh`` seen by ``camera`` by ray casting (same signature and model as the GL renderer).
+def render_mesh(camera: Camera, mesh: TexturedMesh, opt: RenderOptions) -> RenderResult:
+    """Render ``mesh`` seen by ``camera`` by ray casting (same options and model as the GL renderer).
 
-    ``msaa`` is accepted for signature compatibility and ignored (1 sample per pixel); ``with_color=False``
-    skips shading (``color`` is the plain background). Shadows come from shadow maps built by ray casting
-    from each shadowing light (the same maps and lookup as the GL shader).
+    ``opt.msaa`` is ignored (1 sample per pixel); ``opt.with_color=False`` skips shading (``color`` is the plain
+    background). Shadows come from shadow maps built by ray casting from each shadowing light (the same maps
+    and lookup as the GL shader).
     """
-    del msaa
+    if mesh.faces.shape[0] == 0:
+        return empty_result(camera, mesh, opt)
+    light_dir, ambient, background = opt.light_dir, opt.ambient, opt.background
+    noise_sigma, seed = opt.noise_sigma, opt.seed
+    with_color, with_geometry, lights, material = opt.with_color, opt.with_geometry, opt.lights, opt.material
+    output, with_motion = opt.output, opt.with_motion
     xy = pixel_rays(camera)
     H, W = camera.height, camera.width
-    if mesh.faces.shape[0] == 0:
-        img = np.broadcast_to(background_rgb(background).astype(np.float32), (H, W, 3))
-        if lights is not None:
-            img = srgb_to_linear(img / np.float32(255.0))
-        res = RenderResult(finish_color(img, noise_sigma, camera, seed), np.full((H, W), np.nan, np.float32),
-                           np.full((H, W), -1, np.int32), np.zeros((H, W, 3), np.float32))
-        return finish_outputs(res, img, lights, output, noise_sigma, camera, seed, with_motion, mesh)
     V = camera.world_to_camera(mesh.vertices)
     z, tri, bary = cast_rays(V, mesh.faces, xy.reshape(-1, 2))
     hit = np.flatnonzero(tri >= 0)

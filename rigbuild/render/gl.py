@@ -30,8 +30,10 @@ import numpy as np
 
 from rigbuild.camera import Camera
 from rigbuild.render.common import (
+    RenderOptions,
     RenderResult,
     background_rgb,
+    empty_result,
     finish_color,
     finish_outputs,
     light_in_camera,
@@ -583,38 +585,12 @@ def _near_far(z: np.ndarray) -> tuple[float, float]:
 
 
 # ------------------------------------------------------------------ public
-def render_mesh(
-    camera: Camera,
-    mesh: TexturedMesh,
-    light_dir=None,
-    ambient: float = 0.3,
-    background=128,
-    noise_sigma: float = 0.0,
-    seed: int | None = None,
-    msaa: bool = True,
-    with_color: bool = True,
-    with_geometry: bool = True,
-    lights=None,
-    material=None,
-    output: str = "srgb8",
-    with_motion: bool = False,
-) -> RenderResult:
+def render_mesh(camera: Camera, mesh: TexturedMesh, opt: RenderOptions) -> RenderResult:
     """Render ``mesh`` seen by ``camera`` (with its lens distortion) by rasterization on EGL/llvmpipe.
 
-    Parameters
-    ----------
-    camera : the camera (OpenCV model, world in mm).
-    mesh : the textured mesh (world, mm).
-    light_dir : (3,) world direction towards a distant light, or None for ``DEFAULT_LIGHT_DIR``.
-    ambient : ambient fraction; shade = ambient + (1 - ambient) * max(n . l, 0) (two-sided normals).
-    background : grey level or RGB triple (0..255) where no surface is seen.
-    noise_sigma : std of additive Gaussian sensor noise in 8-bit levels.
-    seed : noise seed (None: derived from the camera id, so renders are reproducible).
-    msaa : 4x multisampling for the colour pass (depth/id/bary never multisample).
-    with_color : False skips the colour pass (``color`` is the plain background).
-    with_geometry : False skips the id pass and the exact resolve (depth NaN, tri_id -1, bary 0).
-    lights, material, output, with_motion : as :func:`rigbuild.render.render_mesh` (``with_motion`` runs
-        the geometry pass even when ``with_geometry`` is False).
+    ``opt`` : :class:`rigbuild.render.common.RenderOptions` (documented at :func:`rigbuild.render.render_mesh`);
+    ``opt.msaa`` multisamples the colour pass (depth/id/bary never multisample); ``opt.with_motion`` runs the
+    geometry pass even when ``opt.with_geometry`` is False.
 
     Returns
     -------
@@ -624,13 +600,11 @@ def render_mesh(
     ctx = gl.ctx
     Kp, (Wp, Hp), map_x, map_y, xy = pinhole_cover(camera)
     if mesh.faces.shape[0] == 0:
-        H, W = camera.height, camera.width
-        img = np.broadcast_to(background_rgb(background).astype(np.float32), (H, W, 3))
-        res = RenderResult(finish_color(img, noise_sigma, camera, seed), np.full((H, W), np.nan, np.float32),
-                           np.full((H, W), -1, np.int32), np.zeros((H, W, 3), np.float32))
-        if lights is not None:
-            img = srgb_to_linear(img / np.float32(255.0))
-        return finish_outputs(res, img, lights, output, noise_sigma, camera, seed, with_motion, mesh)
+        return empty_result(camera, mesh, opt)
+    light_dir, ambient, background, msaa = opt.light_dir, opt.ambient, opt.background, opt.msaa
+    noise_sigma, seed = opt.noise_sigma, opt.seed
+    with_color, with_geometry, lights, material = opt.with_color, opt.with_geometry, opt.lights, opt.material
+    output, with_motion = opt.output, opt.with_motion
     if output not in ("srgb8", "linear", "both"):
         raise ValueError(f"render output must be 'srgb8', 'linear' or 'both', got {output!r}")
     with_geometry = with_geometry or with_motion
