@@ -133,26 +133,62 @@ def retarget_performance(
         :func:`rigbuild.retarget.common.lowpass_markers`) before retargeting; not in the paper (offline only).
     """
     t0 = time.perf_counter()
+    model = prepare_model(training, character, map_names, map_vertices, method, transfer_params, retarget_params,
+                          contact_pairs, map_path, workers)
+    t1 = time.perf_counter()
+    res = apply_model(model, training, performance, performance_names, allow_empty_frames, performance_path,
+                      marker_lowpass_hz, fps)
+    res.timings["build_s"] = t1 - t0
+    return res
+
+
+def prepare_model(
+    training: TrainingSet,
+    character: Rig,
+    map_names: Sequence[str],
+    map_vertices: np.ndarray,
+    method: str = "ribera",
+    transfer_params: TransferParams | None = None,
+    retarget_params: RetargetParams | None = None,
+    contact_pairs: np.ndarray | None = None,
+    map_path: str | os.PathLike | None = None,
+    workers: int = 1,
+) -> RiberaModel:
+    """The retargeting model of :func:`retarget_performance` (the transfer), to apply to several takes with
+    :func:`apply_model`. Arguments as there."""
     vids = map_markers_to_vertices(training.names, map_names, map_vertices, character.name, map_path)
     pairs = None
     if contact_pairs is not None and len(contact_pairs):
         pos = {n: i for i, n in enumerate(training.names)}
         pairs = np.array([[pos[map_names[a]], pos[map_names[b]]] for a, b in contact_pairs
                           if map_names[a] in pos and map_names[b] in pos], dtype=np.int64).reshape(-1, 2)
+    check_frames(training.markers, what="training sequence", allow_empty=True)
+    return build_model(character, vids, training.neutral, training.markers, method, transfer_params,
+                       retarget_params, training.segment_starts, contact_pairs=pairs, workers=workers)
+
+
+def apply_model(
+    model: RiberaModel,
+    training: TrainingSet,
+    performance: np.ndarray,
+    performance_names: Sequence[str],
+    allow_empty_frames: bool = True,
+    performance_path: str | os.PathLike | None = None,
+    marker_lowpass_hz: float | None = None,
+    fps: float | None = None,
+) -> RetargetResult:
+    """One performance through a prepared model (:func:`prepare_model`); arguments as in
+    :func:`retarget_performance`."""
+    t1 = time.perf_counter()
     perf = reorder_markers(performance, performance_names, training.names, what="performance", path=performance_path)
     if marker_lowpass_hz is not None:
         perf = lowpass_markers(perf, fps, marker_lowpass_hz)
     ok = check_frames(perf, what="performance", path=performance_path, allow_empty=allow_empty_frames)
-    check_frames(training.markers, what="training sequence", allow_empty=True)
-    model = build_model(character, vids, training.neutral, training.markers, method, transfer_params,
-                        retarget_params, training.segment_starts, contact_pairs=pairs,
-                        workers=workers)
-    t1 = time.perf_counter()
     w = np.zeros((perf.shape[0], model.dp.shape[0]))
     w[ok] = model.retarget(perf[ok])
     w = interpolate_missing_rows(w, ok)
     t2 = time.perf_counter()
     stable, _, _ = stabilize(perf, training.neutral, model.rigidity)
     return RetargetResult(w, list(model.shape_names), stable, model,
-                          {"build_s": t1 - t0, "retarget_s": t2 - t1, "frames": int(perf.shape[0])},
+                          {"build_s": 0.0, "retarget_s": t2 - t1, "frames": int(perf.shape[0])},
                           np.flatnonzero(~ok))

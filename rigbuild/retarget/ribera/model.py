@@ -1,0 +1,126 @@
+"""The end-to-end Ribera model: transfer (sec. 4) + prior (sec. 5) prepared once, then performances
+retargeted with head motion removed (:class:`RiberaModel`, :func:`build_model`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rigbuild.errors import InputError
+from rigbuild.retarget.common import stabilize
+from rigbuild.retarget.methods import RIBERA_METHODS
+from rigbuild.retarget.params import RetargetParams, TransferParams
+from rigbuild.retarget.ribera.guesses import deformation_guesses, rbf_transfer
+from rigbuild.retarget.ribera.prior import head_scale, prior_matrix
+from rigbuild.retarget.ribera.retargeter import RiberaRetargeter
+from rigbuild.retarget.ribera.transfer import TransferResult, training_displacements, transfer_blendshapes
+from rigbuild.rig import Rig
+
+@dataclass
+class RiberaModel:
+    """Everything needed to retarget performances of one actor onto one character.
+
+    a0 : (M, 3) actor neutral (mm); dp : (K, M, 3) actor blendshapes used in E_Fit; Q : (K, K) prior;
+    rigidity : (M,) stabilization weights; shape_names : K names; transfer : the transfer result (None for
+    the ``rbf`` and ``deformation`` baselines).
+    """
+
+    a0: np.ndarray
+    dp: np.ndarray
+    Q: np.ndarray
+    rigidity: np.ndarray
+    shape_names: list[str]
+    params: RetargetParams
+    transfer: TransferResult | None = None
+
+    def retargeter(self) -> RiberaRetargeter:
+        return RiberaRetargeter(self.dp, self.Q, self.params, reference=self.a0)
+
+    def retarget(self, markers: np.ndarray, retargeter: RiberaRetargeter | None = None) -> np.ndarray:
+        """Weights (F, K) for raw performance markers (F, M, 3) mm with head motion and NaN gaps.
+
+        Head motion is removed per frame (weighted rigid fit to ``a0`` with the rigidity weights), then
+        ``refine_rigid`` times re-fitted against the fitted expression ``a0 + P w`` with uniform weights; with
+        ``params.rigid = "joint"`` each solve also fits the remaining small rigid motion.
+        """
+        rt = retargeter or self.retargeter()
+        stable, _, _ = stabilize(markers, self.a0, self.rigidity)
+        w = rt.solve(stable - self.a0[None])
+        for _ in range(self.params.refine_rigid):
+            expr = self.a0[None] + np.einsum("fk,kmc->fmc", w, self.dp)
+            stable, _, _ = stabilize(markers, expr)
+            w = rt.solve(stable - self.a0[None], start=w)  # warm start: same minimizer, fewer passes
+        return w
+
+
+#: the methods :func:`build_model` prepares (the registry: :mod:`rigbuild.retarget.methods`)
+METHODS = tuple(RIBERA_METHODS)
+
+
+def build_model(
+    character: Rig,
+    vertex_ids: np.ndarray,
+    a0: np.ndarray,
+    training: np.ndarray | None,
+    method: str = "ribera",
+    transfer_params: TransferParams | None = None,
+    retarget_params: RetargetParams | None = None,
+    segment_starts: np.ndarray | None = None,
+    uv: np.ndarray | None = None,
+    contact_pairs: np.ndarray | None = None,
+    workers: int = 1,
+) -> RiberaModel:
+    """Prepare retargeting of an actor's markers onto ``character``.
+
+    Parameters
+    ----------
+    character : the character rig (mm), any topology and shape set.
+    vertex_ids : (M,) character vertex of each actor marker (see ``common.map_markers_to_vertices``).
+    a0 : (M, 3) actor neutral markers (mm).
+    training : (F, M, 3) the actor's training (ROM) markers (mm, NaN gaps, head motion allowed); unused by
+        the ``"rbf"`` and ``"deformation"`` baselines.
+    method : ``"ribera"`` (section 4 transfer as written), ``"ribera_activation"`` (the activation-aware
+        E_Match option, see :func:`transfer_blendshapes`), ``"ribera_fit"`` (the ROM-fit E_Match option,
+        :func:`fit_match_transfer`),
+        ``"rbf"`` (baseline: the thin-plate RBF guesses ``g_k`` used directly), ``"deformation"`` (the
+        deformation-transfer guesses of :func:`deformation_guesses` used directly).
+    segment_starts : first frame of each concatenated training sequence.
+    transfer_params.guess : g_k of ``"ribera"`` / ``"ribera_activation"`` (``"rbf"`` as in the paper, or
+        ``"deformation"``).
+
+    workers : processes for the deformation-transfer guesses (the job's threads; same result).
+
+    All methods retarget with the same section-5 energy (E_Fit + mu E_Prior + lambda E_Sparse).
+    """
+    from rigbuild.retarget.common import character_sparse_blendshapes, rigidity_weights
+
+    if method not in METHODS:
+        raise InputError(f"unknown retargeting method '{method}'", fix=f"use one of {', '.join(METHODS)}")
+    rp = retarget_params or RetargetParams()
+    tp = transfer_params or TransferParams()
+    ch = character.to_units("mm") if character.units != "mm" else character
+    s0, ds = character_sparse_blendshapes(ch, vertex_ids)
+    a0 = np.asarray(a0, float)
+    scale = head_scale(a0, s0)
+    Q = prior_matrix(ch.neutral, ch.deltas, ch.faces, scale)
+    transfer = None
+    if tp.guess not in ("rbf", "deformation"):
+        raise InputError(f"unknown initial guess '{tp.guess}'", fix="use rbf or deformation")
+    use_dt = method == "deformation" or (method != "rbf" and tp.guess == "deformation")
+    dg = deformation_guesses(ch, vertex_ids, a0, workers) if use_dt else rbf_transfer(s0, ds, a0)
+    rigidity = rigidity_weights(dg)
+    if method in ("rbf", "deformation"):
+        dp = dg
+    else:
+        if training is None:
+            raise InputError(f"method '{method}' needs the actor's training (ROM) markers")
+        da = training_displacements(np.asarray(training, float), a0, rigidity)
+        if method == "ribera_activation":
+            tp = TransferParams(**{**tp.__dict__, "match": "activation"})
+        if method == "ribera_fit":
+            tp = TransferParams(**{**tp.__dict__, "match": "fit"})
+        transfer = transfer_blendshapes(s0, ds, a0, da, tp, uv=uv, contact_pairs=contact_pairs,
+                                        segment_starts=segment_starts, dg=dg, prior=Q)
+        dp = transfer.dp
+    return RiberaModel(a0, dp, Q, rigidity, list(ch.shape_names), rp, transfer)
