@@ -2,6 +2,7 @@
 # Needs from common.smk: config["params"]["personalize"], session_spec(session), results(session, ...).
 # Needs from the track rules: results/{session}/track/{sequence}/vertices.npz (vertices F x V x 3 mm,
 # confidence F x V) for every ROM sequence. Ground-truth evaluation: rules/eval_personalize.smk.
+from rigbuild.io.rigs import resolve_rig_spec, rig_source_files
 from rigbuild.personalize.params import from_config as _personalize_from_config
 
 
@@ -9,10 +10,7 @@ def _personalize_template_rig(wc):
     """The rig spec to personalize: params.personalize.template_rig, else the session's template_rig
     (a path relative to the workflow folder is made absolute)."""
     spec = _personalize_from_config(config["params"]["personalize"]).template_rig
-    spec = spec or session_spec(wc.session).template_rig
-    if spec in ("procedural", "ict"):
-        return spec
-    return str(Path(spec) if Path(spec).is_absolute() else Path(workflow.basedir) / spec)
+    return resolve_rig_spec(spec or session_spec(wc.session).template_rig, workflow.basedir)
 
 
 def personalize_metric_files(session):
@@ -23,6 +21,7 @@ def personalize_metric_files(session):
 rule personalize:
     input:
         tracks=lambda wc: [f"results/{wc.session}/track/{s.name}/vertices.npz" for s in session_spec(wc.session).rom],
+        template_rig=lambda wc: rig_source_files(_personalize_template_rig(wc)),  # editing the rig reruns the fit
     output:
         rig="results/{session}/personalize/rig.npz",
         initial_rig="results/{session}/personalize/initial_rig.npz",

@@ -33,6 +33,22 @@ ICT_NARROW_FACE_VERTICES = (0, 6706)
 ICT_HEAD_VERTICES = (0, 11248)
 
 
+def _json_or_empty(path: Path) -> dict:
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def ict_expression_names(folder: Path, meta: dict) -> list[str]:
+    """The expressions an ICT folder's rig has: ``vertex_indices.json``'s ``expressions`` (``meta``), else every
+    OBJ but the neutral and the identity modes."""
+    return list(meta.get("expressions", [])) or sorted(
+        p.stem for p in folder.glob("*.obj") if p.name != ICT_NEUTRAL and not p.stem.startswith("identity"))
+
+
+def obj_folder_shape_names(folder: Path, meta: dict) -> list[str]:
+    """The shapes of an OBJ-folder rig: ``rig.json``'s ``shape_names`` (``meta``), else every OBJ but the neutral."""
+    return list(meta.get("shape_names") or sorted(p.stem for p in folder.glob("*.obj") if p.name != "neutral.obj"))
+
+
 def read_shape_positions(path: Path, base: ObjMesh, neutral_name: str) -> np.ndarray:
     """Vertex positions (V, 3) of a shape OBJ ``path`` that must share the neutral ``base``'s topology: the
     same vertex count and the same face list (a shape exported with another vertex order has the count but
@@ -86,11 +102,8 @@ def read_ict_rig(
             path=folder,
             fix="point the rig at ict-facekit/FaceXModel (set $RIGBUILD_DATA)",
         )
-    index_path = folder / "vertex_indices.json"
-    meta = json.loads(index_path.read_text()) if index_path.exists() else {}
-    names = list(expressions) if expressions is not None else list(meta.get("expressions", []))
-    if not names:
-        names = sorted(p.stem for p in folder.glob("*.obj") if p.name != ICT_NEUTRAL and not p.stem.startswith("identity"))
+    meta = _json_or_empty(folder / "vertex_indices.json")
+    names = list(expressions) if expressions is not None else ict_expression_names(folder, meta)
     base = read_obj(neutral_path)
     neutral = base.vertices
     deltas = np.empty((len(names), neutral.shape[0], 3))
@@ -136,10 +149,9 @@ def read_obj_folder_rig(folder: str | os.PathLike, units: str | None = None) -> 
     neutral_path = folder / "neutral.obj"
     if not neutral_path.exists():
         raise InputError("OBJ-folder rig needs neutral.obj", path=folder, fix="name the neutral mesh neutral.obj")
-    meta_path = folder / "rig.json"
-    meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
+    meta = _json_or_empty(folder / "rig.json")
     base = read_obj(neutral_path)
-    names = meta.get("shape_names") or sorted(p.stem for p in folder.glob("*.obj") if p.name != "neutral.obj")
+    names = obj_folder_shape_names(folder, meta)
     deltas = np.empty((len(names), base.vertices.shape[0], 3))
     for k, name in enumerate(names):
         p = folder / f"{name}.obj"
@@ -282,3 +294,41 @@ def read_ict_identity_modes(folder: str | os.PathLike, n_modes: int, units: str 
             raise InputError(f"identity mode {i} not found", path=p, fix=f"use at most {i} identity modes")
         modes.append(read_shape_positions(p, base_mesh, ICT_NEUTRAL) - base)
     return np.asarray(modes) * (UNIT_TO_MM["cm"] / UNIT_TO_MM[units])
+
+
+def rig_source_files(spec: str | os.PathLike) -> list[str]:
+    """The files :func:`load_rig` reads for rig spec ``spec`` (for Snakemake ``input:``, so that editing a
+    rig's files reruns the jobs that read it): an npz itself; an OBJ folder's ``neutral.obj``, ``rig.json`` and
+    shape OBJs; the ICT folder's neutral, expression OBJs and ``vertex_indices.json`` (plus rigbuild's ICT
+    marker set). ``procedural`` is code, not files: ``[]``. A spec that points nowhere gives ``[]`` (the DAG-start
+    check names it)."""
+    s = str(spec)
+    if s == "procedural":
+        return []
+    if s == "ict":
+        from rigbuild.paths import ict_dir
+
+        s = str(ict_dir())
+    p = Path(s)
+    if p.is_file():
+        return [str(p)]
+    if not p.is_dir():
+        return []
+    if (p / ICT_NEUTRAL).exists():
+        from rigbuild.assets.markers import marker_set_path
+
+        names = ict_expression_names(p, _json_or_empty(p / "vertex_indices.json"))
+        files = [p / ICT_NEUTRAL, *(p / f"{n}.obj" for n in names), p / "vertex_indices.json", marker_set_path("ict")]
+    else:
+        names = obj_folder_shape_names(p, _json_or_empty(p / "rig.json"))
+        files = [p / "neutral.obj", *(p / f"{n}.obj" for n in names), p / "rig.json"]
+    return [str(f) for f in files if f.exists()]
+
+
+def resolve_rig_spec(spec: str | os.PathLike, base: str | os.PathLike) -> str:
+    """A rig spec with a relative path made absolute against ``base`` (the workflow folder); ``procedural``,
+    ``ict`` and absolute paths unchanged."""
+    s = str(spec)
+    if s in ("procedural", "ict") or Path(s).is_absolute():
+        return s
+    return str(Path(base) / s)
