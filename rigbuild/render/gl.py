@@ -508,8 +508,11 @@ def egl_available() -> bool:
 
 
 # ------------------------------------------------------------------ geometry helpers
+_COVER_CACHE: dict[tuple, tuple] = {}
+
+
 def pinhole_cover(camera: Camera, margin: int = PINHOLE_MARGIN_PX):
-    """Pinhole image covering the distorted image.
+    """Pinhole image covering the distorted image. Cached per intrinsics, size and margin (read-only arrays).
 
     Returns
     -------
@@ -518,6 +521,19 @@ def pinhole_cover(camera: Camera, margin: int = PINHOLE_MARGIN_PX):
     map_x, map_y : (H, W) float32 pinhole pixel coordinates of each distorted pixel centre.
     xy : (H, W, 2) float64 normalized ray coordinates of each distorted pixel centre.
     """
+    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(), int(margin))
+    hit = _COVER_CACHE.get(key)
+    if hit is None:
+        hit = _pinhole_cover(camera, margin)
+        for a in (hit[0], *hit[2:]):
+            a.setflags(write=False)
+        if len(_COVER_CACHE) >= 16:
+            _COVER_CACHE.pop(next(iter(_COVER_CACHE)))
+        _COVER_CACHE[key] = hit
+    return hit
+
+
+def _pinhole_cover(camera: Camera, margin: int):
     xy = pixel_rays(camera)
     K = camera.K
     valid = _invertible_pixels(camera, xy)
