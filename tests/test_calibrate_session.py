@@ -212,14 +212,30 @@ def test_duplicate_camera_ids_name_session_yaml(session, tmp_path):
     _assert_nothing_written(out)
 
 
-def test_qa_gate_failure_leaves_nothing(session, tmp_path):
+def test_rms_gate_writes_every_output_with_status_fail_then_fails(session, tmp_path):
+    """Finding 4 of issue 21: the RMS gate writes the cameras, residual CSVs, plots and the metrics fragment
+    (status fail) - also into calib_diagnostics/, which Snakemake keeps - and then fails the job;
+    ``gate: warn`` goes on. Gates that fail before any fit (too few images) still leave nothing."""
     out = tmp_path / "out"
-    with pytest.raises(QualityGateError, match=r"cam0\d: RMS .* worst images calib/cam0\d/\d+\.png"):
+    with pytest.raises(QualityGateError, match=r"(?s)cam0\d: RMS .* worst images calib/cam0\d/\d+\.png.*calib_diagnostics"):
         run_calibrate(session[0], out / "calib", {"max_rms_px": 0.03})
-    _assert_nothing_written(out)
+    for folder in ("calib", "calib_diagnostics"):
+        for rel in OUTPUT_FILES:
+            assert (out / folder / rel).stat().st_size > 0, (folder, rel)
+    m = read_metrics(out / "calib_diagnostics" / "calib_metrics.json")["calibration"]
+    assert m["status"] == "fail" and "RMS above params.calibrate.max_rms_px" in m["gate"]
+    rows = (out / "calib" / "reprojection_per_image.csv").read_text().strip().splitlines()
+    assert len(rows) == 1 + 4 * 12
+    warned = run_calibrate(session[0], tmp_path / "warn" / "calib", {"max_rms_px": 0.03, "gate": "warn"})
+    assert warned["status"] == "fail" and (tmp_path / "warn" / "calib" / "cameras.json").exists()
+    passed = run_calibrate(session[0], tmp_path / "pass" / "calib", {"heldout_every": 0})
+    assert passed["status"] == "pass" and passed["gate"] is None
+    assert not (tmp_path / "pass" / "calib_diagnostics").exists()
     with pytest.raises(QualityGateError, match=r"fewer than 30 usable board images"):
-        run_calibrate(session[0], out / "calib", {"min_images": 30})
-    _assert_nothing_written(out)
+        run_calibrate(session[0], tmp_path / "few" / "calib", {"min_images": 30})
+    _assert_nothing_written(tmp_path / "few")
+    with pytest.raises(InputError, match="params.calibrate.gate"):
+        run_calibrate(session[0], tmp_path / "bad" / "calib", {"gate": "ignore"})
 
 
 def _ict_block() -> dict:

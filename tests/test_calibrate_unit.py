@@ -101,7 +101,7 @@ def test_bundle_robust_loss_rejects_outliers():
     robust = calibrate_rig(det, BOARD, (640, 480), CalibrationOptions(max_rms_px=10, robust_loss="soft_l1",
                                                                      robust_scale_px=0.5))
     plain = calibrate_rig(det, BOARD, (640, 480), CalibrationOptions(max_rms_px=10, robust_loss="linear",
-                                                                    max_iterations=15))
+                                                                    max_iterations=15), raise_gate=False)
     e_r = compare_cameras(robust.cameras, cams)
     e_p = compare_cameras(plain.cameras, cams)
     assert e_r["center_error_mm"] < 0.5 * e_p["center_error_mm"]

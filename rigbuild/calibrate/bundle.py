@@ -33,6 +33,8 @@ from rigbuild.progress import progress
 N_CAM = 15  # rx ry rz tx ty tz fx fy cx cy k1 k2 p1 p2 k3
 N_BOARD = 6  # rx ry rz tx ty tz (board-to-world)
 CAM_POSE = slice(0, 6)
+FX, FY, CX, CY = 6, 7, 8, 9
+TANGENTIAL = (12, 13)
 K3_INDEX = 14
 
 
@@ -143,10 +145,14 @@ class _BundleProblem:
     full : (C * 15 + V * 6,) all unknowns (cameras then boards); free : indices of the unknowns solved for.
     """
 
-    def __init__(self, obs: Observations, board_points: np.ndarray, C: int, V: int, free: np.ndarray):
+    def __init__(self, obs: Observations, board_points: np.ndarray, C: int, V: int, free: np.ndarray,
+                 tie: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                 prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
         self.obs, self.board_points, self.C, self.V, self.free = obs, board_points, C, V, free
         self.n = len(obs)
         self.nfev = 0
+        self.tie = tie  # (fx index, fy index, fy / fx): fy follows fx (fixed aspect ratio)
+        self.prior = prior  # (free-vector positions, prior values, sigmas): Gaussian prior terms
         full_to_free = -np.ones(C * N_CAM + V * N_BOARD, dtype=np.int64)
         full_to_free[free] = np.arange(free.size)
         # column of each (observation, local unknown): 15 camera unknowns then 6 board unknowns
@@ -159,10 +165,30 @@ class _BundleProblem:
         C, V = self.C, self.V
         return x[: C * N_CAM].reshape(C, N_CAM), x[C * N_CAM:].reshape(V, N_BOARD)
 
+    def expand(self, x: np.ndarray) -> np.ndarray:
+        """``x`` with the tied unknowns (fy of fixed-aspect cameras) set from the ones they follow."""
+        if self.tie is None:
+            return x
+        x = x.copy()
+        x[self.tie[1]] = x[self.tie[0]] * self.tie[2]
+        return x
+
+    def prior_terms(self, x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """Prior cost, its gradient (free,) and Hessian diagonal (free,) (Gauss-Newton scale, as the data)."""
+        nf = self.free.size
+        if self.prior is None:
+            return 0.0, np.zeros(nf), np.zeros(nf)
+        pos, x0, sigma = self.prior
+        d = (x[self.free[pos]] - x0) / sigma
+        g, h = np.zeros(nf), np.zeros(nf)
+        np.add.at(g, pos, d / sigma)
+        np.add.at(h, pos, 1 / sigma ** 2)
+        return float(np.sum(d ** 2)), g, h
+
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """(n, 2) reprojection residuals, px."""
         self.nfev += 1
-        cp, bp = self.split(x)
+        cp, bp = self.split(self.expand(x))
         return project(cp, bp, self.obs, self.board_points) - self.obs.uv
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
@@ -207,11 +233,15 @@ def _levenberg_marquardt(problem: _BundleProblem, full: np.ndarray, loss: str, f
     r = problem.residuals(full)
     initial_rms = float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
     costs, w = robust_weights(np.sum(r ** 2, axis=1), loss, f_scale_px)
-    cost = costs.sum()
+    cost = costs.sum() + problem.prior_terms(full)[0]
     lam = 1e-3
-    status, message = 0, "maximum number of iterations reached"
+    rel = step = float("nan")
+    status, message = 0, f"not converged after {max_iterations} iterations"
     for _ in progress(range(max_iterations), "bundle adjustment", unit="iteration"):
         H, g = problem.normal_equations(full, r, w)
+        _, g_p, h_p = problem.prior_terms(full)
+        H[np.diag_indices_from(H)] += h_p
+        g = g + g_p
         diag = np.diag(H).copy()
         diag[diag <= 0] = 1.0
         improved = False
@@ -227,7 +257,7 @@ def _levenberg_marquardt(problem: _BundleProblem, full: np.ndarray, loss: str, f
             trial[free] += dx
             r_t = problem.residuals(trial)
             costs_t, w_t = robust_weights(np.sum(r_t ** 2, axis=1), loss, f_scale_px)
-            cost_t = costs_t.sum()
+            cost_t = costs_t.sum() + problem.prior_terms(trial)[0]
             if np.isfinite(cost_t) and cost_t < cost:
                 improved = True
                 rel = (cost - cost_t) / max(cost, 1e-300)
@@ -242,6 +272,9 @@ def _levenberg_marquardt(problem: _BundleProblem, full: np.ndarray, loss: str, f
         if rel < tol or step < tol:
             status, message = 1, f"converged (relative cost decrease {rel:.1e}, relative step {step:.1e})"
             break
+    if status == 0:
+        message += (f" (tolerance {tol:.0e}; last relative cost decrease {rel:.1e}, relative step {step:.1e}, "
+                    f"damping {lam:.1e})")
     return full, initial_rms, status, message
 
 
@@ -256,6 +289,9 @@ def bundle_adjust(
     f_scale_px: float = 1.0,
     max_iterations: int = 100,
     tol: float = 1e-12,
+    fixed: np.ndarray | None = None,
+    tie_aspect: np.ndarray | None = None,
+    prior_sigma: np.ndarray | None = None,
 ) -> BundleResult:
     """Minimize robust reprojection error over all camera poses, intrinsics, distortion and board poses.
 
@@ -264,23 +300,45 @@ def bundle_adjust(
     differences over column groups: unknown j of *all* cameras is perturbed at once (no residual depends on
     two cameras), likewise for boards, so one Jacobian costs 2 x (15 + 6) residual evaluations whatever
     the rig size. The normal matrix (unknowns x unknowns, 420 for 16 cameras x 30 poses) is solved densely
-    by Cholesky.
+    by Cholesky. Iterates until the relative cost decrease or the relative step is below ``tol`` (status 1),
+    or no step lowers the cost (status 2); status 0 = ``max_iterations`` reached first.
 
     cam_params (C, 15), board_params (V, 6): initial values (see :func:`project`).
     fixed_pose_cams : cameras whose pose is held (the world frame); their intrinsics stay free.
     fix_k3 : hold every camera's k3 at its initial value.
     loss, f_scale_px : robust loss (``linear``, ``soft_l1``, ``huber``, ``cauchy``) and its scale in px.
+    fixed : (C, 15) bool, camera unknowns held at their initial values (known intrinsics, a principal point
+        fixed at the centre, zero tangential distortion ...), on top of the above.
+    tie_aspect : (C,) bool, cameras whose fy follows fx at the initial ratio fy / fx (fixed aspect ratio).
+    prior_sigma : (C, 15) standard deviations of Gaussian priors at the initial values (inf = none),
+        in the unknowns' units (px for fx..cy); a prior on a held unknown has no effect.
     """
     t0 = time.perf_counter()
     C, V = cam_params.shape[0], board_params.shape[0]
     full = np.concatenate([cam_params.ravel(), board_params.ravel()]).astype(np.float64)
-    fixed = np.zeros(full.size, dtype=bool)
+    hold = np.zeros(full.size, dtype=bool)
     for c in fixed_pose_cams:
-        fixed[c * N_CAM: c * N_CAM + 6] = True
+        hold[c * N_CAM: c * N_CAM + 6] = True
     if fix_k3:
-        fixed[np.arange(C) * N_CAM + K3_INDEX] = True
-    problem = _BundleProblem(obs, board_points, C, V, np.flatnonzero(~fixed))
+        hold[np.arange(C) * N_CAM + K3_INDEX] = True
+    if fixed is not None:
+        hold[: C * N_CAM] |= np.asarray(fixed, dtype=bool).reshape(-1)
+    tie = None
+    if tie_aspect is not None and np.any(tie_aspect):
+        cams = np.flatnonzero(tie_aspect)
+        hold[cams * N_CAM + FY] = True
+        tie = (cams * N_CAM + FX, cams * N_CAM + FY, full[cams * N_CAM + FY] / full[cams * N_CAM + FX])
+    free = np.flatnonzero(~hold)
+    prior = None
+    if prior_sigma is not None:
+        sig = np.full(full.size, np.inf)
+        sig[: C * N_CAM] = np.asarray(prior_sigma, dtype=np.float64).reshape(-1)
+        pos = np.flatnonzero(np.isfinite(sig[free]))
+        if pos.size:
+            prior = (pos, full[free[pos]].copy(), sig[free[pos]])
+    problem = _BundleProblem(obs, board_points, C, V, free, tie, prior)
     full, initial_rms, status, message = _levenberg_marquardt(problem, full, loss, f_scale_px, max_iterations, tol)
+    full = problem.expand(full)
     cp, bp = problem.split(full)
     res = project(cp, bp, obs, board_points) - obs.uv
     return BundleResult(cp.copy(), bp.copy(), res, float(np.sqrt(np.mean(np.sum(res ** 2, axis=1)))),

@@ -9,7 +9,7 @@ naming the file.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterable, Mapping
 
@@ -119,13 +119,89 @@ def detect_chessboard(gray: np.ndarray, board: BoardSpec, subpix_window: int = 5
     return Detection(np.arange(nx * ny), corners)
 
 
-def detect_board(gray: np.ndarray, board: BoardSpec, subpix_window: int | None = None) -> Detection:
-    """Dispatch on ``board.type`` (``charuco`` or ``chessboard``)."""
+def _detect_polarity(gray: np.ndarray, board: BoardSpec, subpix_window: int | None) -> Detection:
     if board.type == "charuco":
         return detect_charuco(gray, board, 0 if subpix_window is None else subpix_window)
     if board.type == "chessboard":
         return detect_chessboard(gray, board, 5 if subpix_window is None else subpix_window)
     raise InputError(f"unknown board type '{board.type}'", fix="use 'charuco' or 'chessboard' in session.yaml board.type")
+
+
+def detect_board(gray: np.ndarray, board: BoardSpec, subpix_window: int | None = None) -> Detection:
+    """Dispatch on ``board.type`` (``charuco`` or ``chessboard``) and ``board.inverted``: ``True`` detects
+    in the inverted image (a board printed white on black), ``"auto"`` tries the image as it is and then
+    inverted when the first finds no corner."""
+    if board.inverted is True:
+        return _detect_polarity(255 - gray, board, subpix_window)
+    det = _detect_polarity(gray, board, subpix_window)
+    if board.inverted == "auto" and len(det) == 0:
+        det = _detect_polarity(255 - gray, board, subpix_window)
+    return det
+
+
+def board_variants(board: BoardSpec) -> list[tuple[str, BoardSpec]]:
+    """Board specs a wrong description is most often confused with, as (session.yaml change, spec):
+    the other print polarity, the other ChArUco layout, x and y swapped, squares counted as inner corners."""
+    out: list[tuple[str, BoardSpec]] = []
+    if board.type == "charuco":
+        pol = [] if board.inverted == "auto" else [(f"inverted: {str(not board.inverted).lower()}",
+                                                     not board.inverted)]
+        for leg in (board.legacy_pattern, not board.legacy_pattern):
+            for swap in (False, True):
+                for pol_text, inv in [("", board.inverted)] + pol:
+                    changes = [t for t in (pol_text, f"legacy_pattern: {str(leg).lower()}" if leg != board.legacy_pattern
+                                           else "", f"squares_x: {board.squares_y}, squares_y: {board.squares_x}"
+                                           if swap else "") if t]
+                    if changes:
+                        sx, sy = (board.squares_y, board.squares_x) if swap else (board.squares_x, board.squares_y)
+                        out.append((", ".join(changes), replace(board, squares_x=sx, squares_y=sy, inverted=inv,
+                                                                legacy_pattern=leg)))
+    else:
+        out.append((f"squares_x: {board.squares_x + 1}, squares_y: {board.squares_y + 1} (squares, not inner "
+                    "corners)", replace(board, squares_x=board.squares_x + 1, squares_y=board.squares_y + 1)))
+        if board.inverted is not True:
+            out.append(("inverted: true", replace(board, inverted=True)))
+    return out
+
+
+def count_markers(gray: np.ndarray, board: BoardSpec) -> int:
+    """ArUco markers of ``board.dictionary`` found in an image, either polarity (0 for a chessboard)."""
+    if board.type != "charuco":
+        return 0
+    det_params = cv2.aruco.DetectorParameters()
+    det_params.detectInvertedMarker = True
+    det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, board.dictionary)), det_params)
+    _, ids, _ = det.detectMarkers(gray)
+    return 0 if ids is None else int(len(ids))
+
+
+def describe_board(board: BoardSpec) -> str:
+    """One line naming the board as session.yaml describes it."""
+    text = f"{board.type} {board.squares_x} x {board.squares_y} squares of {board.square_size_mm:g} mm"
+    if board.type == "charuco":
+        text += (f", {board.marker_size_mm:g} mm {board.dictionary} markers, inverted: "
+                 f"{str(board.inverted).lower()}, legacy_pattern: {str(board.legacy_pattern).lower()}")
+    return text
+
+
+def diagnose_board(grays: Mapping[str, np.ndarray], board: BoardSpec) -> list[str]:
+    """Lines explaining a board spec that finds nothing in ``grays`` (image name -> grey image): what was
+    tried, which nearby spec finds corners (the fix), markers of the dictionary seen."""
+    tried = ["as described" + (" (then inverted)" if board.inverted == "auto" else "")]
+    lines = []
+    for change, variant in board_variants(board):
+        n = sum(len(detect_board(g, variant)) for g in grays.values())
+        tried.append(change)
+        if n:
+            lines.append(f"with {change}: {n} corners in {len(grays)} sample images -> set board.{change}")
+    out = [f"tried on {len(grays)} sample images ({', '.join(list(grays)[:3])}): {'; '.join(tried)}"]
+    out += lines
+    if board.type == "charuco" and not lines:
+        n_mk = sum(count_markers(g, board) for g in grays.values())
+        out.append(f"{n_mk} {board.dictionary} markers found (either polarity)" + (
+            ": the dictionary matches, check squares_x/squares_y, square_size_mm/marker_size_mm ratio"
+            if n_mk else ": check board.dictionary (and board.type) against the printed board"))
+    return out
 
 
 def is_usable(det: Detection, board: BoardSpec, min_corners: int) -> bool:
@@ -169,8 +245,16 @@ def session_images(spec) -> dict[str, dict[str, Path]]:
         paths = spec.calib_images(cam)
         if not paths:
             raise InputError(f"camera '{cam}' has no calibration images", path=spec.calib_dir(cam),
-                             fix=f"put the board images of {cam} as calib/{cam}/<n>.png")
-        out[cam] = {p.stem: p for p in paths}
+                             fix=f"put the board images of {cam} as calib/{cam}/<n>.png (or .jpg), or point "
+                             "session.yaml calibration.images at their folder")
+        out[cam] = {}
+        for p in paths:
+            key = spec.view_key(p)
+            if key in out[cam]:
+                raise InputError(f"images {out[cam][key].name} and {p.name} have the same view key '{key}'",
+                                 path=p, fix="give each board pose one image per camera (or fix "
+                                 "calibration.view_key in session.yaml)")
+            out[cam][key] = p
     return out
 
 

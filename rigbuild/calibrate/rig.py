@@ -17,9 +17,11 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from rigbuild.calibrate import qa
-from rigbuild.calibrate.bundle import N_CAM, BundleResult, Observations, bundle_adjust
+from rigbuild.calibrate.bundle import CX, CY, FX, K3_INDEX, N_CAM, TANGENTIAL, BundleResult, Observations, \
+    bundle_adjust
 from rigbuild.calibrate.detect import Detection, is_usable
-from rigbuild.calibrate.intrinsics import calibrate_intrinsics, calibration_flags
+from rigbuild.calibrate.intrinsics import Intrinsics, board_poses, calibrate_intrinsics, calibration_flags
+from rigbuild.errors import QualityGateError
 from rigbuild.calibrate.params import CalibrationOptions
 from rigbuild.calibrate.posegraph import PoseGraph, build_pose_graph
 from rigbuild.calibrate.rotations import rodrigues, rotation_to_rvec
@@ -54,6 +56,15 @@ class RigCalibration:
     bundle: BundleResult
     graph: PoseGraph
     seconds: dict[str, float] = field(default_factory=dict)
+    intrinsics_source: dict[str, str] = field(default_factory=dict)  # camera id -> rig | images | given
+    flags: dict[str, list[str]] = field(default_factory=dict)  # camera id -> plausibility flags
+    gate_failures: list[str] = field(default_factory=list)  # RMS / convergence gate messages (empty: pass)
+    heldout: dict | None = None  # rigbuild.calibrate.heldout.heldout_errors of a fit without every n-th pose
+
+    @property
+    def status(self) -> str:
+        """``pass`` or ``fail`` (the RMS and convergence gates)."""
+        return "fail" if self.gate_failures else "pass"
 
     @property
     def rms_px(self) -> float:
@@ -112,6 +123,8 @@ class RigCalibration:
                 "initial_rms_px": self.initial_rms_px[cam.id],
                 "fx": cam.K[0, 0], "fy": cam.K[1, 1], "cx": cam.K[0, 2], "cy": cam.K[1, 2],
                 "k1": cam.dist[0], "k2": cam.dist[1], "p1": cam.dist[2], "p2": cam.dist[3], "k3": cam.dist[4],
+                "intrinsics": self.intrinsics_source.get(cam.id, "rig"),
+                "flags": "; ".join(self.flags.get(cam.id, [])),
             })
         return rows
 
@@ -140,12 +153,63 @@ def gather_observations(detections: Mapping[str, Mapping[str, Detection]], camer
     return Observations(np.concatenate(cam), np.concatenate(view), np.concatenate(corner), np.concatenate(uv))
 
 
+@dataclass
+class KnownIntrinsics:
+    """Intrinsics of one camera known before the rig fit: given (session.yaml) or calibrated from that
+    camera's own images. K (3, 3) px, dist (5,), source ``given`` or ``images``, rms_px of their own fit."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    source: str
+    rms_px: float = float("nan")
+
+
+def _camera_intrinsics(detections, usable, pts, image_size, opt: CalibrationOptions,
+                       known: Mapping[str, KnownIntrinsics]) -> dict[str, Intrinsics]:
+    """Per camera: Zhang's method on its rig views, or board poses by PnP for known intrinsics."""
+    flags = calibration_flags(fix_k3=opt.fix_k3, zero_tangent=opt.fix_tangential, fix_aspect=opt.fix_aspect_ratio,
+                              fix_principal_point=opt.fix_principal_point)
+    intr = {}
+    for c in progress(list(detections), "intrinsic calibration", unit="camera"):
+        obj = [pts[detections[c][v].ids] for v in usable[c]]
+        img = [detections[c][v].corners for v in usable[c]]
+        if c in known:
+            intr[c] = board_poses(obj, img, known[c].K, known[c].dist)
+        else:
+            intr[c] = calibrate_intrinsics(obj, img, image_size, flags=flags, camera=c)
+    return intr
+
+
+def _held_unknowns(cam_ids, known, opt: CalibrationOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(fixed (C, 15) bool, tie_aspect (C,) bool, prior_sigma (C, 15) or None) for the bundle adjustment."""
+    C = len(cam_ids)
+    fixed = np.zeros((C, N_CAM), dtype=bool)
+    tie = np.zeros(C, dtype=bool)
+    prior = np.full((C, N_CAM), np.inf)
+    for i, c in enumerate(cam_ids):
+        if c in known and opt.known_intrinsics == "fixed":
+            fixed[i, FX:] = True
+            continue
+        if c in known:
+            f = known[c].K[0, 0]
+            prior[i, FX:CY + 1] = [f * opt.prior_focal_pct / 100, f * opt.prior_focal_pct / 100,
+                                   opt.prior_principal_px, opt.prior_principal_px]
+            prior[i, CY + 1:] = opt.prior_distortion
+        fixed[i, [CX, CY]] |= opt.fix_principal_point
+        fixed[i, list(TANGENTIAL)] |= opt.fix_tangential
+        fixed[i, K3_INDEX] |= opt.fix_k3
+        tie[i] = opt.fix_aspect_ratio
+    return fixed, tie, (prior if np.isfinite(prior).any() else None)
+
+
 def calibrate_rig(
     detections: Mapping[str, Mapping[str, Detection]],
     board: BoardSpec,
     image_size: tuple[int, int],
     options: CalibrationOptions | None = None,
     image_names: Mapping[str, Mapping[str, str]] | None = None,
+    known: Mapping[str, KnownIntrinsics] | None = None,
+    raise_gate: bool = True,
 ) -> RigCalibration:
     """Calibrate every camera's intrinsics and the rig's extrinsics.
 
@@ -153,10 +217,15 @@ def calibrate_rig(
     board : the board (its square size sets the metric scale, mm).
     image_size : (width, height) px.
     image_names : camera id -> view key -> name used in reports and QA messages (default ``cam/key``).
+    known : camera id -> intrinsics known beforehand (held or a prior: ``options.known_intrinsics``).
+    raise_gate : raise QualityGateError when the RMS or convergence gate fails; False: the failures are
+        in ``result.gate_failures`` (the caller writes the outputs first, :mod:`rigbuild.calibrate.session`).
 
-    Raises QualityGateError (qa gates: too few usable images, a camera linked to no other, RMS too high).
+    Raises QualityGateError (too few usable images, a camera linked to no other; RMS / convergence with
+    ``raise_gate``).
     """
     opt = options or CalibrationOptions()
+    known = dict(known or {})
     t0 = time.perf_counter()
     cam_ids = list(detections)
     names = {c: {v: (image_names or {}).get(c, {}).get(v, f"{c}/{v}") for v in detections[c]} for c in cam_ids}
@@ -169,21 +238,14 @@ def calibrate_rig(
         dropped[c] = [names[c][v] for v, d in detections[c].items() if v not in usable[c]]
     qa.check_image_counts({c: [names[c][v] for v in usable[c]] for c in cam_ids}, dropped, opt.min_images)
 
-    # 1. intrinsics and per-view board poses, one camera at a time
-    flags = calibration_flags(fix_k3=opt.fix_k3)
-    intr = {}
-    view_poses: dict[str, dict] = {}
-    for c in progress(cam_ids, "intrinsic calibration", unit="camera"):
-        obj = [pts[detections[c][v].ids] for v in usable[c]]
-        img = [detections[c][v].corners for v in usable[c]]
-        intr[c] = calibrate_intrinsics(obj, img, image_size, flags=flags, camera=c)
-        view_poses[c] = {v: (intr[c].R_views[k], intr[c].t_views[k]) for k, v in enumerate(usable[c])}
+    # 1. intrinsics (or known ones) and per-view board poses, one camera at a time
+    intr = _camera_intrinsics(detections, usable, pts, image_size, opt, known)
+    view_poses = {c: {v: (intr[c].R_views[k], intr[c].t_views[k]) for k, v in enumerate(usable[c])} for c in cam_ids}
     t1 = time.perf_counter()
 
     # 2. pose graph
     reference = opt.reference_camera or cam_ids[0]
-    symmetry = board_symmetry(board)
-    graph = build_pose_graph(view_poses, reference, symmetry)
+    graph = build_pose_graph(view_poses, reference, board_symmetry(board))
     qa.check_connected(graph.unreachable, reference, {c: [names[c][v] for v in usable[c]] for c in cam_ids})
     view_keys = sorted(graph.boards, key=lambda k: (len(k), k))
     t2 = time.perf_counter()
@@ -202,9 +264,10 @@ def calibrate_rig(
         cam_params[i] = np.concatenate([rotation_to_rvec(R), t, [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], intr[c].dist])
     board_params = np.stack([np.concatenate([rotation_to_rvec(graph.boards[v][0]), graph.boards[v][1]])
                              for v in view_keys])
+    fixed, tie, prior = _held_unknowns(cam_ids, known, opt)
     ba = bundle_adjust(cam_params, board_params, obs, pts, fixed_pose_cams=(cam_ids.index(reference),),
-                       fix_k3=opt.fix_k3, loss=opt.robust_loss, f_scale_px=opt.robust_scale_px,
-                       max_iterations=opt.max_iterations)
+                       loss=opt.robust_loss, f_scale_px=opt.robust_scale_px, max_iterations=opt.max_iterations,
+                       tol=opt.tolerance, fixed=fixed, tie_aspect=tie, prior_sigma=prior)
     t3 = time.perf_counter()
 
     cameras = []
@@ -216,8 +279,14 @@ def calibrate_rig(
         cameras=cameras, reference=reference, view_keys=view_keys,
         board_R=rodrigues(ba.board_params[:, 0:3]), board_t=ba.board_params[:, 3:6].copy(), obs=obs,
         residuals=ba.residuals, board_points=pts, image_names=names, dropped=dropped,
-        initial_rms_px={c: intr[c].rms_px for c in cam_ids}, bundle=ba, graph=graph,
-        seconds={"intrinsics": t1 - t0, "pose_graph": t2 - t1, "bundle": t3 - t2, "total": t3 - t0},
+        initial_rms_px={c: (known[c].rms_px if c in known else intr[c].rms_px) for c in cam_ids}, bundle=ba,
+        graph=graph, seconds={"intrinsics": t1 - t0, "pose_graph": t2 - t1, "bundle": t3 - t2, "total": t3 - t0},
+        intrinsics_source={c: known[c].source if c in known else "rig" for c in cam_ids},
     )
-    qa.check_rms(result.camera_rms(), result.image_rms(), opt.max_rms_px)
+    result.flags = qa.plausibility_flags(cameras, {c.id: int(np.unique(obs.view[obs.cam == i]).size)
+                                                   for i, c in enumerate(cameras)}, opt.min_board_poses)
+    result.gate_failures = [m for m in (qa.rms_message(result.camera_rms(), result.image_rms(), opt.max_rms_px),
+                                        qa.convergence_message(ba, opt.max_iterations)) if m]
+    if raise_gate and result.gate_failures:
+        raise QualityGateError("\n".join(result.gate_failures))
     return result

@@ -8,7 +8,11 @@ so a failure - bad input or a QA gate - leaves nothing half-written):
 - ``reprojection_per_image.csv``, ``reprojection_per_camera.csv``
 - ``residuals.png``, ``camera_layout.png``
 - ``calib_metrics.json``: the metrics fragment ``{"calibration": {...}}`` (no ground truth; the
-  ``eval_calibration`` rule compares ``cameras.json`` with the ground truth)
+  ``eval_calibration`` rule compares ``cameras.json`` with the ground truth): ``status`` (pass / fail of the
+  RMS and convergence gates), plausibility flags, held-out reprojection RMS (:mod:`rigbuild.calibrate.heldout`)
+
+Intrinsics per camera (:func:`known_intrinsics`): given in session.yaml ``intrinsics:``, else calibrated
+from that camera's own ``calib_intrinsics/<cam>/`` images, else estimated from the rig footage.
 """
 
 from __future__ import annotations
@@ -24,10 +28,13 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from rigbuild.calibrate.detect import count_corners, detect_images, session_images
+from rigbuild.calibrate.detect import (count_corners, describe_board, detect_board, detect_images, diagnose_board,
+                                      is_usable, read_gray, session_images)
+from rigbuild.calibrate.heldout import heldout_errors, split_views
+from rigbuild.calibrate.intrinsics import calibrate_intrinsics, calibration_flags, given_intrinsics
 from rigbuild.calibrate.params import CalibrationOptions, from_config
-from rigbuild.calibrate.rig import RigCalibration, calibrate_rig
-from rigbuild.errors import InputError
+from rigbuild.calibrate.rig import KnownIntrinsics, RigCalibration, calibrate_rig
+from rigbuild.errors import InputError, QualityGateError
 from rigbuild.io.atomic import write_text
 from rigbuild.io.cameras import write_cameras
 from rigbuild.io.colmap import write_colmap_text
@@ -47,13 +54,55 @@ OUTPUT_FILES = (
 )
 
 
+def no_board_error(spec: SessionSpec, images: Mapping[str, Mapping[str, Path]], where: str = "calibration"
+                   ) -> InputError:
+    """The error for a board spec that finds no corner: what was tried, which nearby spec would work."""
+    n = sum(len(v) for v in images.values())
+    sample = [p for views in images.values() for p in list(views.values())[:1]][:3]
+    grays = {str(p.relative_to(spec.root)) if p.is_relative_to(spec.root) else str(p): read_gray(p) for p in sample}
+    lines = diagnose_board(grays, spec.board)
+    return InputError(f"field 'board': no {spec.board.type} corners found in any of the {n} {where} images "
+                      f"(board: {describe_board(spec.board)}); " + "; ".join(lines), path=spec.root / "session.yaml",
+                      fix="check board.type, squares_x/squares_y, dictionary, inverted (white on black: true, or "
+                      "auto) and legacy_pattern against the printed board ('rigbuild init-session' checks a few "
+                      "images)")
+
+
+def known_intrinsics(spec: SessionSpec, params: CalibrationOptions) -> dict[str, KnownIntrinsics]:
+    """camera id -> intrinsics known before the rig fit: session.yaml ``intrinsics:`` (source ``given``),
+    else Zhang's method on the camera's own ``calib_intrinsics/<cam>/`` images (source ``images``, with the
+    stage's model options). Cameras with neither are absent (their intrinsics come from the rig footage)."""
+    out = {c: KnownIntrinsics(K, d, "given") for c, (K, d) in
+           given_intrinsics(spec.raw.get("intrinsics"), spec.root, spec.cameras).items()}
+    pts, _ = spec.board.corner_points()
+    flags = calibration_flags(fix_k3=params.fix_k3, zero_tangent=params.fix_tangential,
+                              fix_aspect=params.fix_aspect_ratio, fix_principal_point=params.fix_principal_point)
+    for cam in spec.cameras:
+        paths = spec.intrinsics_images(cam)
+        if cam in out or not paths:
+            continue
+        dets = {p: detect_board(read_gray(p, (spec.width, spec.height)), spec.board, params.subpix_window)
+                for p in paths}
+        if not any(len(d) for d in dets.values()):
+            raise no_board_error(spec, {cam: {p.stem: p for p in paths}}, f"intrinsics ({spec.intrinsics_dir(cam)})")
+        good = [d for d in dets.values() if is_usable(d, spec.board, params.min_corners)]
+        intr = calibrate_intrinsics([pts[d.ids] for d in good], [d.corners for d in good], (spec.width, spec.height),
+                                    flags=flags, camera=cam)
+        out[cam] = KnownIntrinsics(intr.K, intr.dist, "images", intr.rms_px)
+    return out
+
+
 def calibrate_session(session_dir: str | os.PathLike, params: CalibrationOptions | Mapping | None = None
                       ) -> tuple[SessionSpec, RigCalibration]:
-    """Detect the board in every ``calib/<cam>/<n>.png`` of a session and calibrate the rig.
+    """Detect the board in every calibration image of a session and calibrate the rig.
 
     params : the stage's parameters (a mapping goes through :func:`rigbuild.calibrate.params.from_config`;
         None = defaults).
-    Raises InputError (bad images, a board spec that matches no image) or QualityGateError (QA gates).
+    Raises InputError (bad images, a board spec that matches no image) or QualityGateError (too few images,
+    cameras not linked). The RMS and convergence gates do not raise: ``result.gate_failures`` lists them
+    (:func:`rigbuild.calibrate.stage.run_calibrate` writes the outputs, then fails). With
+    ``params.heldout_every`` the rig is calibrated a second time without every n-th board pose and
+    ``result.heldout`` holds :func:`rigbuild.calibrate.heldout.heldout_errors` (or ``{"error": text}``).
     """
     spec = read_session(session_dir)
     params = params if isinstance(params, CalibrationOptions) else from_config(params)
@@ -62,16 +111,23 @@ def calibrate_session(session_dir: str | os.PathLike, params: CalibrationOptions
     detections = detect_images(images, spec.board, (spec.width, spec.height), params.subpix_window)
     t_detect = time.perf_counter() - t0
     if count_corners(detections) == 0:
-        n = sum(len(v) for v in images.values())
-        raise InputError(f"field 'board': no {spec.board.type} corners found in any of the {n} calibration "
-                         f"images (e.g. {next(iter(next(iter(images.values())).values()))})",
-                         path=spec.root / "session.yaml",
-                         fix="check board.type, squares_x/squares_y and dictionary against the printed board")
-    names = {c: {v: str(p.relative_to(spec.root)) for v, p in views.items()} for c, views in images.items()}
-    result = calibrate_rig(detections, spec.board, (spec.width, spec.height),
-                           params, image_names=names)
+        raise no_board_error(spec, images)
+    known = known_intrinsics(spec, params)
+    names = {c: {v: str(p.relative_to(spec.root)) if p.is_relative_to(spec.root) else str(p)
+                 for v, p in views.items()} for c, views in images.items()}
+    result = calibrate_rig(detections, spec.board, (spec.width, spec.height), params, image_names=names,
+                           known=known, raise_gate=False)
+    fitted, held = split_views(result.view_keys, params.heldout_every)
+    if held:
+        try:
+            sub = {c: {v: d for v, d in views.items() if v not in held} for c, views in detections.items()}
+            fit = calibrate_rig(sub, spec.board, (spec.width, spec.height), params, known=known, raise_gate=False)
+            result.heldout = heldout_errors(fit.cameras, detections, held, result.board_points)
+            result.heldout["n_views_fitted"] = len(fitted)
+        except QualityGateError as exc:
+            result.heldout = {"error": f"no held-out fit without {len(held)} board poses: {exc}"}
     result.seconds["detect"] = t_detect
-    result.seconds["total"] += t_detect
+    result.seconds["total"] = time.perf_counter() - t0
     return spec, result
 
 
@@ -175,9 +231,12 @@ def _save_fig(fig, path) -> None:
 def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
     """The ``calibration`` block of the stage's metrics fragment (no ground truth)."""
     cam_rms = result.camera_rms()
-    return {
+    m = {
+        "status": result.status,
+        "gate": "; ".join(f.splitlines()[0] for f in result.gate_failures) or None,
         "rms_px": result.rms_px,
         "max_camera_rms_px": max(cam_rms.values()),
+        "camera_rms_px": cam_rms,
         "n_cameras": len(result.cameras),
         "n_board_poses": len(result.view_keys),
         "n_images_used": int(np.unique(result.obs.cam * len(result.view_keys) + result.obs.view).size),
@@ -186,10 +245,21 @@ def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
         "reference_camera": result.reference,
         "bundle_iterations_nfev": result.bundle.nfev,
         "bundle_converged": result.bundle.status in (1, 2),
+        "intrinsics_source": dict(result.intrinsics_source),
+        "n_plausibility_flags": sum(len(f) for f in result.flags.values()),
+        "plausibility_flags": {c: "; ".join(f) for c, f in result.flags.items() if f},
         "seconds": result.seconds.get("total"),
         "seconds_detect": result.seconds.get("detect"),
         "seconds_bundle": result.seconds.get("bundle"),
     }
+    h = result.heldout or {}
+    if "rms_px" in h:
+        m.update(heldout_reprojection_rms_px=h["rms_px"], heldout_camera_rms_px=h["camera_rms_px"],
+                 heldout_n_corners=h["n_corners"], heldout_n_board_poses=h["n_views"],
+                 heldout_scale_deviation_pct=h["scale_deviation_pct"])
+    elif "error" in h:
+        m["heldout"] = h["error"].splitlines()[0]
+    return m
 
 
 def write_outputs(result: RigCalibration, out_dir: str | os.PathLike, session: str) -> dict[str, Any]:
