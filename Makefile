@@ -49,6 +49,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[test]'
 	$(PY) -m pip check
+	$(PY) -m rigbuild.assets.face_models install
 	touch $(STAMP)
 
 bench: setup

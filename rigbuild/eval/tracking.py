@@ -38,6 +38,15 @@ def vertex_errors(tracked: np.ndarray, truth: np.ndarray, vertices: np.ndarray |
     return np.linalg.norm(tracked - truth, axis=2)
 
 
+def landmark_nme(predicted: np.ndarray, truth: np.ndarray, outer_eye=(36, 45)) -> float:
+    """Normalized mean error of 2-D landmarks: mean over points of |predicted - truth| (px) divided by the
+    truth's outer-eye-corner distance (iBUG 68: points 36 and 45). predicted, truth: (N, 2) px."""
+    p, t = np.asarray(predicted, np.float64), np.asarray(truth, np.float64)
+    if p.shape != t.shape:
+        raise ValueError(f"predicted {p.shape} and truth {t.shape} differ")
+    return float(np.linalg.norm(p - t, axis=1).mean() / np.linalg.norm(t[outer_eye[0]] - t[outer_eye[1]]))
+
+
 def surface_anchors(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Closest points of ``points`` (N, 3) on the mesh (vertices, faces): triangle ids (N,), barycentrics (N, 3)."""
     import igl
