@@ -17,6 +17,9 @@ import numpy as np
 from rigbuild.errors import InputError
 
 UNIT_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+#: The head frame every rig file is written in: the template's frame (the ICT frame), which is glTF's too.
+#: Its origin is the template head's centre.
+HEAD_FRAME_AXES = "right-handed, +y up, +z towards the face's front (glTF convention)"
 
 
 @dataclass
@@ -141,7 +144,18 @@ class Rig:
         v = self.neutral if vertices is None else np.asarray(vertices)
         return v[..., self.marker_vertices, :]
 
+    @property
+    def metres_per_unit(self) -> float:
+        """The rig's unit in metres (glTF positions are metres)."""
+        return UNIT_TO_MM[self.units] / 1000.0
+
     # -------------------------------------------------------------- transforms
+    def transformed(self, R: np.ndarray, t: np.ndarray) -> "Rig":
+        """A copy moved rigidly: neutral ``R x + t`` (``t`` (3,) in the rig's units), deltas ``R d``."""
+        R = np.asarray(R, dtype=np.float64)
+        return replace(self, neutral=self.neutral @ R.T + np.asarray(t, dtype=np.float64),
+                       deltas=self.deltas @ R.T)
+
     def to_units(self, units: str) -> "Rig":
         """A copy converted to ``units`` (``mm``, ``cm`` or ``m``)."""
         if units not in UNIT_TO_MM:
@@ -168,3 +182,19 @@ class Rig:
             marker_names=list(self.marker_names),
             marker_vertices=self.marker_vertices.copy(),
         )
+
+
+def head_frame_transform(template: Rig, neutral: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """The rigid capture-to-head transform of a neutral mesh ``neutral`` (V, 3) in the cameras' world (the
+    template's units): ``(R (3, 3), t (3,), rms)`` with ``x_head = R x_capture + t``, the least-squares rigid fit
+    of the face region (``template.face_vertices``) onto the template's neutral, and the fit's RMS distance. No
+    scale: the actor keeps their size; the axes and the origin are the template's (:data:`HEAD_FRAME_AXES`)."""
+    from rigbuild.geometry.rigid import fit_rigid_motion
+
+    v = template.face_vertices
+    x = np.asarray(neutral, dtype=np.float64)
+    if x.shape != template.neutral.shape:
+        raise InputError(f"neutral is {x.shape}, the template rig '{template.name}' is {template.neutral.shape}")
+    R, t = fit_rigid_motion(x[v], template.neutral[v])
+    rms = float(np.sqrt(np.mean(np.sum((x[v] @ R.T + t - template.neutral[v]) ** 2, axis=1))))
+    return R, t, rms

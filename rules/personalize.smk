@@ -27,6 +27,7 @@ rule personalize:
         initial_rig="results/{session}/personalize/initial_rig.npz",
         rig_obj=directory("results/{session}/personalize/rig_obj"),
         gltf="results/{session}/personalize/rig.gltf",
+        head_frame="results/{session}/personalize/head_frame.json",  # capture -> head frame of the rig files
         weights="results/{session}/personalize/weights.npz",
         fit="results/{session}/personalize/fit.npz",
         objective="results/{session}/personalize/objective.json",

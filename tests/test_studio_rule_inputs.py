@@ -77,3 +77,18 @@ def test_personalize_declares_its_template_rig_files(tmp_path):
     job = text[text.index("rule personalize:"):]
     inputs = job[:job.index("\n", job.index("input:"))]
     assert str(rig_folder / "neutral.obj") in inputs and str(rig_folder / "rig.json") in inputs
+
+
+def test_export_names_are_checked_at_dag_start(tmp_path):
+    """``params.personalize.export: {names: ...}`` is validated with the other params before any job runs."""
+    cfg = yaml.safe_load((PROJECT_ROOT / "config" / "config.yaml").read_text())
+    cfg["sessions"]["demo"]["path"] = str(tmp_path / "demo")
+    cfg["params"]["personalize"] = {**(cfg["params"].get("personalize") or {}), "export": {"names": "arkit52"}}
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(cfg))
+    r = subprocess.run([SNAKEMAKE, "-n", "--configfile", str(tmp_path / "bad.yaml"), "--directory", str(tmp_path),
+                        "--snakefile", str(PROJECT_ROOT / "Snakefile"), "--cores", "1"],
+                       capture_output=True, text=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"}, timeout=300)
+    assert r.returncode != 0
+    assert "unknown export names 'arkit52'" in r.stdout + r.stderr and "arkit" in r.stdout + r.stderr
+    cfg["params"]["personalize"]["export"] = {"names": "arkit"}
+    assert "personalize" in _dry_run(tmp_path, cfg)

@@ -22,7 +22,7 @@ import numpy as np
 
 from rigbuild.errors import InputError
 from rigbuild.io.atomic import write_bytes
-from rigbuild.rig import UNIT_TO_MM, Rig
+from rigbuild.rig import HEAD_FRAME_AXES, UNIT_TO_MM, Rig
 
 _FLOAT = 5126
 _UINT = 5125
@@ -39,10 +39,11 @@ def _split_by_uv(rig: Rig) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     return uniq[:, 0], inv.reshape(-1, 3), rig.uvs[uniq[:, 1]]
 
 
-def gltf_rig_document(rig: Rig, scale: float | None = None) -> tuple[dict, bytes]:
-    """The glTF JSON dict and its binary buffer for ``rig`` (see the module docstring)."""
+def gltf_rig_document(rig: Rig, scale: float | None = None, extras: dict | None = None) -> tuple[dict, bytes]:
+    """The glTF JSON dict and its binary buffer for ``rig`` (see the module docstring); ``extras`` are added to
+    ``asset.extras`` (e.g. the frame the rig was moved into)."""
     if scale is None:
-        scale = UNIT_TO_MM[rig.units] / 1000.0  # -> metres
+        scale = rig.metres_per_unit
     src, tris, uvs = _split_by_uv(rig)
     blobs: list[bytes] = []
     views: list[dict] = []
@@ -89,10 +90,9 @@ def gltf_rig_document(rig: Rig, scale: float | None = None) -> tuple[dict, bytes
         "asset": {
             "version": "2.0",
             "generator": "rigbuild.io.gltf",
-            "extras": {"units": "m" if scale == UNIT_TO_MM[rig.units] / 1000.0 else f"{scale} x {rig.units}",
-                       "source_units": rig.units, "scale": scale,
-                       "axes": "right-handed, +y up, +z towards the face's front (glTF convention)",
-                       "n_source_vertices": rig.n_vertices},
+            "extras": {"units": "m" if scale == rig.metres_per_unit else f"{scale} x {rig.units}",
+                       "source_units": rig.units, "scale": scale, "axes": HEAD_FRAME_AXES,
+                       "n_source_vertices": rig.n_vertices, **(extras or {})},
         },
         "scene": 0,
         "scenes": [{"nodes": [0]}],
@@ -109,10 +109,11 @@ def gltf_rig_document(rig: Rig, scale: float | None = None) -> tuple[dict, bytes
     return doc, buffer
 
 
-def write_gltf_rig(path: str | os.PathLike, rig: Rig, scale: float | None = None) -> None:
-    """Write ``rig`` as glTF 2.0 (``.gltf`` embedded buffer or ``.glb``) atomically."""
+def write_gltf_rig(path: str | os.PathLike, rig: Rig, scale: float | None = None, extras: dict | None = None) -> None:
+    """Write ``rig`` as glTF 2.0 (``.gltf`` embedded buffer or ``.glb``) atomically; ``extras`` as in
+    :func:`gltf_rig_document`."""
     path = Path(path)
-    doc, buffer = gltf_rig_document(rig, scale)
+    doc, buffer = gltf_rig_document(rig, scale, extras)
     if path.suffix.lower() == ".glb":
         js = json.dumps(doc, separators=(",", ":")).encode("utf-8")
         js += b" " * ((-len(js)) % 4)

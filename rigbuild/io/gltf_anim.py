@@ -19,7 +19,7 @@ import os
 import numpy as np
 
 from rigbuild.io.atomic import write_text
-from rigbuild.rig import UNIT_TO_MM, Rig
+from rigbuild.rig import HEAD_FRAME_AXES, Rig
 
 FLOAT = 5126
 UINT = 5125
@@ -74,7 +74,7 @@ def gltf_animation_document(
     w = np.asarray(weights, dtype=np.float32)
     if w.ndim != 2 or w.shape[1] != rig.n_shapes:
         raise ValueError(f"weights must be (F, {rig.n_shapes}), got {w.shape}")
-    to_m = UNIT_TO_MM[rig.units] / 1000.0
+    to_m = rig.metres_per_unit
     buf = _Buffer()
     pos = (rig.neutral * to_m).astype(np.float32)
     a_pos = buf.accessor({
@@ -125,7 +125,7 @@ def gltf_animation_document(
     return {
         "asset": {"version": "2.0", "generator": "rigbuild.io.gltf_anim",
                   "extras": {"units": "m", "source_units": rig.units, "scale": to_m,
-                             "axes": "right-handed, +y up, +z towards the face's front (glTF convention)",
+                             "axes": HEAD_FRAME_AXES,
                              "fps": float(fps), "n_frames": int(F)}},
         "scene": 0,
         "scenes": [{"nodes": [0]}],

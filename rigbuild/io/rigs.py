@@ -24,7 +24,7 @@ import numpy as np
 from rigbuild.errors import InputError
 from rigbuild.io.atomic import atomic_path, save_npz, write_json
 from rigbuild.io.obj import ObjMesh, face_vertex_lists, read_obj, write_obj
-from rigbuild.rig import Rig
+from rigbuild.rig import HEAD_FRAME_AXES, Rig
 
 ICT_NEUTRAL = "generic_neutral_mesh.obj"
 #: ICT vertex ranges (from its README): face skin and head/neck.
@@ -176,8 +176,9 @@ def read_obj_folder_rig(folder: str | os.PathLike, units: str | None = None) -> 
     return rig if units is None else rig.to_units(units)
 
 
-def write_obj_folder_rig(rig: Rig, folder: str | os.PathLike) -> None:
-    """Write ``neutral.obj``, one full-shape OBJ per shape, and ``rig.json`` (units, names, markers)."""
+def write_obj_folder_rig(rig: Rig, folder: str | os.PathLike, extras: dict | None = None) -> None:
+    """Write ``neutral.obj``, one full-shape OBJ per shape, and ``rig.json`` (units, names, markers, and
+    ``extras``: more keys, e.g. the frame the rig was moved into)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     hdr = f"rigbuild rig '{rig.name}', units {rig.units}"
@@ -189,11 +190,12 @@ def write_obj_folder_rig(rig: Rig, folder: str | os.PathLike) -> None:
         {
             "name": rig.name,
             "units": rig.units,
-            "axes": "right-handed, +y up, +z towards the face's front",
+            "axes": HEAD_FRAME_AXES,
             "shape_names": rig.shape_names,
             "face_region": None if rig.face_region is None else rig.face_region.tolist(),
             "landmarks": None if rig.landmarks is None else rig.landmarks.tolist(),
             "markers": {n: int(v) for n, v in zip(rig.marker_names, rig.marker_vertices)},
+            **(extras or {}),
         },
     )
 

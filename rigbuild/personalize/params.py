@@ -23,6 +23,8 @@ GAUGES = ("none", "rom_peak")
 QP_METHODS = ("active_set", "cvxopt")
 #: ``PersonalizeConfig.fit_region`` values: the template's face region, or every vertex
 FIT_REGIONS = ("face", "all")
+#: ``ExportParams.names`` values: the template's shape names, or ARKit's 52 (rigbuild/assets/arkit52.json)
+EXPORT_NAMES = ("rig", "arkit")
 
 WHERE = "params.personalize"
 
@@ -117,6 +119,24 @@ class PersonalizeParams:
 
 
 @dataclass
+class ExportParams:
+    """``params.personalize.export``: how the personalized rig's files (rig.npz, initial_rig.npz, rig_obj/,
+    rig.gltf) are written. They are always in the template's head frame (:mod:`rigbuild.personalize.export`).
+
+    names : ``"rig"`` keeps the template's shape names; ``"arkit"`` writes ARKit's 52 names
+        (:func:`rigbuild.io.arkit.arkit_rig`; the shapes without an ARKit counterpart are listed in rig.json,
+        the glTF's ``asset.extras`` and the log).
+    """
+
+    names: str = "rig"
+
+    def check(self) -> None:
+        if self.names not in EXPORT_NAMES:
+            raise InputError(f"unknown export names '{self.names}' in {WHERE}.export", path="config",
+                             fix=f"{WHERE}.export.names: one of {', '.join(EXPORT_NAMES)}")
+
+
+@dataclass
 class PersonalizeConfig:
     """The whole ``params.personalize`` block: the EM's :class:`PersonalizeParams` (``em``, whose fields are
     given at the block's top level) and the stage's options.
@@ -129,6 +149,7 @@ class PersonalizeConfig:
     fit_region : ``"face"`` (the template's face region) or ``"all"`` vertices are fitted.
     heatmaps : write one change heat map per shape (the overview is always written).
     template_rig : the rig spec to personalize (None: the session's ``template_rig``); read by the rule.
+    export : :class:`ExportParams` (``export: {names: arkit}``).
     """
 
     em: PersonalizeParams = field(default_factory=PersonalizeParams)
@@ -138,6 +159,7 @@ class PersonalizeConfig:
     fit_region: str = "face"
     heatmaps: bool = True
     template_rig: Optional[str] = None
+    export: ExportParams = field(default_factory=ExportParams)
 
     def check(self) -> None:
         """InputError for a bad value of a stage option or of :attr:`em`."""
@@ -147,6 +169,10 @@ class PersonalizeConfig:
         if self.fit_region not in FIT_REGIONS:
             raise InputError(f"unknown fit_region '{self.fit_region}' in {WHERE}", path="config",
                              fix=f"use one of: {', '.join(FIT_REGIONS)}")
+        if not isinstance(self.export, ExportParams):
+            raise InputError(f"{WHERE}.export must be a mapping such as {{names: arkit}}, got {self.export!r}",
+                             path="config")
+        self.export.check()
         self.em.check()
 
 

@@ -5,8 +5,10 @@ Called by ``scripts/personalize.py`` (rule ``personalize``, :func:`run_personali
 (``eval_personalize``); this stage never reads the session's ground truth.
 
 Files written under ``results/{session}/personalize/``: ``rig.npz``, ``initial_rig.npz`` (D* on the tracked
-neutral), ``rig_obj/``, ``rig.gltf``, ``weights.npz``, ``fit.npz``, ``objective.json``, ``convergence.png``,
-``heatmaps/`` and the metrics fragment ``personalize_metrics.json`` (``{"personalization": {...}}``).
+neutral), ``rig_obj/``, ``rig.gltf`` (the rig files, in the template's head frame: ``head_frame.json`` holds the
+capture-to-head transform; :mod:`rigbuild.personalize.export`), ``weights.npz``, ``fit.npz`` (the fit, in the
+cameras' world), ``objective.json``, ``convergence.png``, ``heatmaps/`` and the metrics fragment
+``personalize_metrics.json`` (``{"personalization": {...}}``).
 """
 
 from __future__ import annotations
@@ -22,10 +24,9 @@ import numpy as np
 from rigbuild.errors import InputError
 from rigbuild.geometry.deformation_transfer import deformation_transfer_aligned
 from rigbuild.io.atomic import save_npz, write_json
-from rigbuild.io.gltf import write_gltf_rig
 from rigbuild.io.metrics import write_metrics_fragment
-from rigbuild.io.rigs import write_obj_folder_rig, write_rig_npz
 from rigbuild.personalize.em import PersonalizationResult, fit_weights_and_rigid, personalize
+from rigbuild.personalize.export import export_rigs
 from rigbuild.personalize.params import PersonalizeConfig, from_config
 from rigbuild.personalize.plots import plot_convergence, render_change_heatmap, render_change_overview
 from rigbuild.rig import Rig
@@ -261,10 +262,7 @@ def run_personalization(
 
     rig = dataclasses.replace(template.copy(), neutral=res.neutral, deltas=res.deltas, name="personalized")
     initial = dataclasses.replace(template.copy(), neutral=b0, deltas=Dstar, name="initial")
-    write_rig_npz(out / "rig.npz", rig)
-    write_rig_npz(out / "initial_rig.npz", initial)
-    write_obj_folder_rig(rig, out / "rig_obj")
-    write_gltf_rig(out / "rig.gltf", rig)
+    export_rigs(out, rig, initial, template, cfg.export)
 
     ho = fit_held_out(data, held, b0, Dstar, res, region, template.n_vertices, cfg, neutral_frames)
     write_fit_arrays(out, data, fit_names, held, Dstar, res, ho, region, template.shape_names)
