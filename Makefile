@@ -2,6 +2,7 @@
 #   make demo  - set up .venv (and the Debian libraries the stack links) and run the whole DAG on the
 #                embedded synthetic session `demo` (config/config.yaml).
 #   make test  - set up the same .venv and run the test suite.
+#   make unlock - after a hard kill: remove Snakemake's stale lock (only when no other run uses this folder).
 SHELL := /bin/bash
 PYTHON ?= python3.11
 VENV := .venv
@@ -17,10 +18,16 @@ export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: demo test setup system-deps bench lint clean
+.PHONY: demo test setup system-deps bench lint clean unlock
 
+# --rerun-incomplete: after Ctrl-C the jobs that were running are redone; every job writes its outputs
+# atomically (rigbuild.io.atomic), so an interrupted job leaves nothing half-written to keep.
 demo: setup
-	$(VENV)/bin/snakemake --cores $(CORES)
+	$(VENV)/bin/snakemake --cores $(CORES) --rerun-incomplete
+
+unlock:
+	@test -x $(VENV)/bin/snakemake || { echo "no $(VENV) yet: nothing to unlock"; exit 0; }
+	$(VENV)/bin/snakemake --unlock
 
 test: setup
 	@$(MAKE) --no-print-directory system-deps DEB_PACKAGES="$(TEST_DEB_PACKAGES)" || echo "warning: Chromium not installed; the report screenshot test will skip"
