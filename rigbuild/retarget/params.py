@@ -45,6 +45,12 @@ GUESSES = ("rbf", "deformation")
 CEG_REFERENCES = ("character", "rbf")
 #: rigid head motion in E_Fit (``RetargetParams.rigid``)
 RIGID_MODES = ("joint", "fixed")
+#: E_Sparse (``RetargetParams.sparsity``): eq. 16's L1, or the reweighted-L1 log penalty (an option)
+SPARSITY_MODES = ("l1", "log")
+#: the plausibility options switched on together (``params.retarget.ribera``; :mod:`rigbuild.retarget.ribera.plausible`):
+#: the log sparsity penalty and antagonist exclusion (the still-region gate is an option measured off:
+#: docs/decisions.md)
+PLAUSIBLE = {"sparsity": "log", "antagonists": True}
 
 
 @dataclass
@@ -114,10 +120,30 @@ class RetargetParams:
     active_set_passes: int = 6
     refine_rigid: int = 1
     rigid: str = "joint"
+    sparsity: str = "l1"
+    sparsity_lambda_cm: float = PAPER_LAMBDA_CM
+    sparsity_eps: float = 0.1
+    antagonists: bool = False
+    antagonist_lambda_cm: float = 20.0
+    still_gate: bool = False
+    still_ratio: float = 0.25
+    coherence_frames: float = 4.0
 
     @property
     def lambda_mm(self) -> float:
+        """Eq. 16's lambda for markers in mm: E_Fit and E_Prior are squared lengths (x100 from cm to mm),
+        E_Sparse is unit-free, so the paper's cm value is multiplied by :data:`CM2_TO_MM2` (once, here)."""
         return self.lambda_cm * CM2_TO_MM2
+
+    @property
+    def antagonist_lambda_mm(self) -> float:
+        """The antagonist penalty's weight in mm units (as :attr:`lambda_mm`)."""
+        return self.antagonist_lambda_cm * CM2_TO_MM2
+
+    @property
+    def sparsity_lambda_mm(self) -> float:
+        """The log sparsity penalty's slope at 0 in mm units (as :attr:`lambda_mm`)."""
+        return self.sparsity_lambda_cm * CM2_TO_MM2
 
 
 @dataclass
@@ -132,6 +158,9 @@ class RiberaParams:
     preview_frames : frames drawn in preview.png (the most active ones).
     primary : the Ribera variant also reported as ``retarget.ribera.*``.
     marker_lowpass_hz : zero-phase low-pass of the take's markers (-3 dB, Hz) before solving, or null.
+    sparsity, sparsity_lambda_cm, antagonists, antagonist_lambda_cm, still_gate, still_ratio, coherence_frames :
+    the plausibility options of :class:`RetargetParams` (off by default; :data:`PLAUSIBLE` switches on the
+    ones measured to help on real takes).
     """
 
     alpha: float = TransferParams.alpha
@@ -150,6 +179,13 @@ class RiberaParams:
     preview_frames: int = 4
     primary: str = PRIMARY_RIBERA_METHOD
     marker_lowpass_hz: Optional[float] = None
+    sparsity: str = RetargetParams.sparsity
+    sparsity_lambda_cm: float = RetargetParams.sparsity_lambda_cm
+    antagonists: bool = RetargetParams.antagonists
+    antagonist_lambda_cm: float = RetargetParams.antagonist_lambda_cm
+    still_gate: bool = RetargetParams.still_gate
+    still_ratio: float = RetargetParams.still_ratio
+    coherence_frames: float = RetargetParams.coherence_frames
 
     def for_method(self, method: str) -> "RiberaParams":
         """The parameters ``method`` runs with: these, except for :data:`PAPER_METHOD` (``ribera``), which
@@ -165,7 +201,7 @@ class RiberaParams:
 
         return replace(self, alpha=PAPER_ALPHA, beta=PAPER_BETA, r=PAPER_R, ceg_reference="character",
                        guess="rbf", mu=PAPER_MU, lambda_cm=PAPER_LAMBDA_CM, bounds=None, rigid="fixed",
-                       marker_lowpass_hz=None)
+                       marker_lowpass_hz=None, sparsity="l1", antagonists=False, still_gate=False)
 
     def transfer_params(self, method: str) -> TransferParams:
         """The transfer parameters of ``method`` (``ribera_fit`` takes ``fit_guess``; ``ribera`` the paper's,
@@ -180,7 +216,11 @@ class RiberaParams:
         """The section-5 parameters of ``method`` (``ribera``: the paper's, :meth:`for_method`; None: these)."""
         q = self if method is None else self.for_method(method)
         bounds = None if q.bounds is None else tuple(q.bounds)
-        return RetargetParams(mu=float(q.mu), lambda_cm=float(q.lambda_cm), bounds=bounds, rigid=str(q.rigid))
+        return RetargetParams(mu=float(q.mu), lambda_cm=float(q.lambda_cm), bounds=bounds, rigid=str(q.rigid),
+                              sparsity=str(q.sparsity), sparsity_lambda_cm=float(q.sparsity_lambda_cm),
+                              antagonists=bool(q.antagonists),
+                              antagonist_lambda_cm=float(q.antagonist_lambda_cm), still_gate=bool(q.still_gate),
+                              still_ratio=float(q.still_ratio), coherence_frames=float(q.coherence_frames))
 
 
 # ----------------------------------------------------------------------------- Seol et al. 2012
@@ -272,6 +312,11 @@ def check_ribera(p: RiberaParams, where: str = f"{WHERE}.ribera") -> RiberaParam
     _one_of(p.fit_guess, GUESSES, f"{where}.fit_guess")
     _one_of(p.ceg_reference, CEG_REFERENCES, f"{where}.ceg_reference")
     _one_of(p.rigid, RIGID_MODES, f"{where}.rigid")
+    _one_of(p.sparsity, SPARSITY_MODES, f"{where}.sparsity")
+    plausible = p.sparsity != "l1" or p.antagonists or p.still_gate
+    if plausible and (p.bounds is None or p.bounds[0] is None or p.bounds[0] < 0):
+        raise InputError(f"'{where}': sparsity, antagonists and still_gate need bounds from 0, got {p.bounds!r}",
+                         path="config", fix="set bounds: [0, 1]")
     _interval(p.bounds, f"{where}.bounds", optional=True)
     check_primary(p.primary)
     return p

@@ -11,7 +11,7 @@ retargeting jobs and by ``benchmarks/bench_retarget_real.py``).
   with one of their shapes above 0.2.
 
 The solver options that use these (sparsity reweighting, antagonist exclusion, still-region gating) are in
-:mod:`rigbuild.retarget.ribera_plausible`.
+:mod:`rigbuild.retarget.ribera.plausible`.
 """
 
 from __future__ import annotations

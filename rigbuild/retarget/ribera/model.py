@@ -12,6 +12,8 @@ from rigbuild.retarget.common import stabilize
 from rigbuild.retarget.methods import RIBERA_METHODS
 from rigbuild.retarget.params import RetargetParams, TransferParams
 from rigbuild.retarget.ribera.guesses import deformation_guesses, rbf_transfer
+from rigbuild.retarget.plausible import antagonist_pairs
+from rigbuild.retarget.ribera.plausible import marker_ranges
 from rigbuild.retarget.ribera.prior import head_scale, prior_matrix
 from rigbuild.retarget.ribera.retargeter import RiberaRetargeter
 from rigbuild.retarget.ribera.transfer import TransferResult, training_displacements, transfer_blendshapes
@@ -23,7 +25,9 @@ class RiberaModel:
 
     a0 : (M, 3) actor neutral (mm); dp : (K, M, 3) actor blendshapes used in E_Fit; Q : (K, K) prior;
     rigidity : (M,) stabilization weights; shape_names : K names; transfer : the transfer result (None for
-    the ``rbf`` and ``deformation`` baselines).
+    the ``rbf`` and ``deformation`` baselines); marker_range : (M,) each marker's range over the training
+    sequence (mm; the still-region option's noise level, :func:`.plausible.marker_ranges`; None without
+    training markers: the option is then off).
     """
 
     a0: np.ndarray
@@ -33,20 +37,23 @@ class RiberaModel:
     shape_names: list[str]
     params: RetargetParams
     transfer: TransferResult | None = None
+    marker_range: np.ndarray | None = None  # (M,) training range of each marker (mm; the still-region test)
 
     def retargeter(self) -> RiberaRetargeter:
-        return RiberaRetargeter(self.dp, self.Q, self.params, reference=self.a0)
+        return RiberaRetargeter(self.dp, self.Q, self.params, reference=self.a0,
+                                antagonist_pairs=antagonist_pairs(self.shape_names), marker_ranges=self.marker_range)
 
     def retarget(self, markers: np.ndarray, retargeter: RiberaRetargeter | None = None) -> np.ndarray:
         """Weights (F, K) for raw performance markers (F, M, 3) mm with head motion and NaN gaps.
 
         Head motion is removed per frame (weighted rigid fit to ``a0`` with the rigidity weights), then
         ``refine_rigid`` times re-fitted against the fitted expression ``a0 + P w`` with uniform weights; with
-        ``params.rigid = "joint"`` each solve also fits the remaining small rigid motion.
+        ``params.rigid = "joint"`` each solve also fits the remaining small rigid motion. The plausibility
+        options (:mod:`.plausible`) run on the last solve only.
         """
         rt = retargeter or self.retargeter()
         stable, _, _ = stabilize(markers, self.a0, self.rigidity)
-        w = rt.solve(stable - self.a0[None])
+        w = rt.solve(stable - self.a0[None], plain=self.params.refine_rigid > 0)  # options on the last solve
         for _ in range(self.params.refine_rigid):
             expr = self.a0[None] + np.einsum("fk,kmc->fmc", w, self.dp)
             stable, _, _ = stabilize(markers, expr)
@@ -110,12 +117,15 @@ def build_model(
     use_dt = method == "deformation" or (method != "rbf" and tp.guess == "deformation")
     dg = deformation_guesses(ch, vertex_ids, a0, workers) if use_dt else rbf_transfer(s0, ds, a0)
     rigidity = rigidity_weights(dg)
+    marker_range = da = None
+    if training is not None:
+        da = training_displacements(np.asarray(training, float), a0, rigidity)
+        marker_range = marker_ranges(da)
     if method in ("rbf", "deformation"):
         dp = dg
     else:
         if training is None:
             raise InputError(f"method '{method}' needs the actor's training (ROM) markers")
-        da = training_displacements(np.asarray(training, float), a0, rigidity)
         if method == "ribera_activation":
             tp = TransferParams(**{**tp.__dict__, "match": "activation"})
         if method == "ribera_fit":
@@ -123,4 +133,4 @@ def build_model(
         transfer = transfer_blendshapes(s0, ds, a0, da, tp, uv=uv, contact_pairs=contact_pairs,
                                         segment_starts=segment_starts, dg=dg, prior=Q)
         dp = transfer.dp
-    return RiberaModel(a0, dp, Q, rigidity, list(ch.shape_names), rp, transfer)
+    return RiberaModel(a0, dp, Q, rigidity, list(ch.shape_names), rp, transfer, marker_range)

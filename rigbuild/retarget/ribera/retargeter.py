@@ -9,7 +9,10 @@ import numpy as np
 from rigbuild.errors import InputError
 from rigbuild.retarget.common import visible_mask
 from rigbuild.retarget.params import RetargetParams
-from rigbuild.retarget.ribera.bounded import _masked_system, _solve_free
+from rigbuild.retarget.ribera.bounded import box_qp
+from rigbuild.retarget.ribera.plausible import (ANTAGONIST_ROUNDS, REWEIGHT_PASSES, antagonist_pins,
+                                              antagonist_slopes,
+                                              reweighted_slopes, still_upper_bounds, support_masks)
 
 def rigid_jacobian(reference: np.ndarray) -> np.ndarray:
     """(M, 3, 6) derivative of the marker positions under a small rigid motion of ``reference`` (M, 3).
@@ -47,7 +50,8 @@ class RiberaRetargeter:
     """
 
     def __init__(self, dp: np.ndarray, Q: np.ndarray, params: RetargetParams | None = None,
-                 reference: np.ndarray | None = None):
+                 reference: np.ndarray | None = None, antagonist_pairs: np.ndarray | None = None,
+                 marker_ranges: np.ndarray | None = None):
         self.params = params or RetargetParams()
         if self.params.rigid not in ("joint", "fixed"):
             raise InputError(f"unknown rigid mode '{self.params.rigid}'", fix="use joint or fixed")
@@ -69,6 +73,14 @@ class RiberaRetargeter:
         lo, hi = (None, None) if self.params.bounds is None else self.params.bounds
         self.lo = -np.inf if lo is None else float(lo)
         self.hi = np.inf if hi is None else float(hi)
+        # plausibility options (:mod:`.plausible`): antagonist index pairs, still-region support and noise
+        self.antagonist_pairs = np.zeros((0, 2), np.int64) if antagonist_pairs is None else np.asarray(
+            antagonist_pairs, np.int64).reshape(-1, 2)
+        self.still_noise = None if marker_ranges is None else np.asarray(marker_ranges, float)
+        self.support = support_masks(self.dp)
+        if (self.params.sparsity != "l1" or self.params.antagonists or self.params.still_gate) and self.lo < 0:
+            raise InputError("the plausibility options (sparsity, antagonists, still_gate) need weight bounds "
+                             "from 0", fix="set bounds: [0, 1]")
 
     def _system(self, vis: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Normal matrix (K, K) for visible markers ``vis`` (M,) and, for the joint rigid fit, the (K, 6)
@@ -115,99 +127,25 @@ class RiberaRetargeter:
         return np.einsum("mcj,fj->fmc", self.J, xi)
 
     def _bounded_solve(self, A: np.ndarray, b: np.ndarray, shared: bool = False,
-                       start: np.ndarray | None = None) -> np.ndarray:
-        """Batched ``min 1/2 w^T A_f w - b_f^T w`` s.t. lo <= w <= hi by a primal active-set method.
+                       start: np.ndarray | None = None, hi: np.ndarray | None = None) -> np.ndarray:
+        """Batched ``min 1/2 w^T A_f w - b_f^T w`` s.t. lo <= w <= hi (:func:`.bounded.box_qp`).
 
         A (F, K, K) SPD, b (F, K); ``shared``: every A_f is the complete-visibility system (one inverse serves
-        the unconstrained start). ``start`` (F, K): a previous solution whose active set (variables at a bound) is the first guess instead of
-        the unconstrained solution's violations (a warm start; the minimizer is unique, so only the number
-        of passes changes). Exact: KKT signs are checked each pass; frames where the fast primal-dual
-        passes do not settle finish with :meth:`_primal_active_set`. Each pass solves only the free
-        variables (:func:`_solve_free`).
+        the unconstrained start); ``start`` (F, K): a warm start (same minimizer, fewer passes); ``hi``
+        (F, K): per-frame upper bounds (default the params' bound; a shape with hi <= lo is held at 0).
         """
         F, K = b.shape
-        if not (np.isfinite(self.lo) or np.isfinite(self.hi)):
+        if not (np.isfinite(self.lo) or np.isfinite(self.hi)) and hi is None:
             return np.linalg.solve(A, b[..., None])[..., 0]
-        self.last_passes = 0
-        self.unconverged = 0
-        if start is not None:
-            at_lo = start <= self.lo
-            at_hi = start >= self.hi
-            w = np.clip(start, self.lo, self.hi)
-            todo = np.arange(F)
-        else:
-            # start from the unconstrained solution's violations (one shared inverse when every frame is complete)
-            if shared and A.shape[0] > 1:
-                if not hasattr(self, "_full_inv"):
-                    self._full_inv = np.linalg.inv(self._full)
-                w = b @ self._full_inv.T
-            else:
-                w = np.linalg.solve(A, b[..., None])[..., 0]
-            at_lo = w < self.lo
-            at_hi = w > self.hi
-            todo = np.flatnonzero(at_lo.any(1) | at_hi.any(1))
-        for _ in range(self.params.active_set_passes):
-            if todo.size == 0:
-                break
-            self.last_passes += 1
-            Ab, bb, lo_b, hi_b = A[todo], b[todo], at_lo[todo], at_hi[todo]
-            free = ~(lo_b | hi_b)
-            wb = _solve_free(Ab, bb, free, np.where(lo_b, self.lo, self.hi))
-            grad = (Ab @ wb[..., None])[..., 0] - bb
-            release = (lo_b & (grad < -1e-12)) | (hi_b & (grad > 1e-12))
-            new_lo = free & (wb < self.lo - 1e-12)
-            new_hi = free & (wb > self.hi + 1e-12)
-            w[todo] = wb
-            at_lo[todo] = (lo_b & ~release) | new_lo
-            at_hi[todo] = (hi_b & ~release) | new_hi
-            todo = todo[release.any(1) | new_lo.any(1) | new_hi.any(1)]
-        if todo.size:
-            w[todo] = self._primal_active_set(A[todo], b[todo], np.clip(w[todo], self.lo, self.hi))
-        return np.clip(w, self.lo, self.hi)
-
-    def _primal_active_set(self, A: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
-        """Batched primal active-set method from a feasible start (cannot cycle; for the few frames where
-        the fast primal-dual active set above did not settle). One constraint changes per step."""
-        F, K = b.shape
-        lo, hi = self.lo, self.hi
-        at_lo = w <= lo
-        at_hi = w >= hi
-        todo = np.arange(F)
-        rows = np.arange(F)
-        for _ in range(6 * K + 10):
-            if todo.size == 0:
-                break
-            Ab, bb, lo_b, hi_b, wt = A[todo], b[todo], at_lo[todo], at_hi[todo], w[todo]
-            free = ~(lo_b | hi_b)
-            wb = _solve_free(Ab, bb, free, np.where(lo_b, lo, hi))
-            d = wb - wt
-            below = free & (wb < lo - 1e-12)
-            above = free & (wb > hi + 1e-12)
-            infeasible = below.any(1) | above.any(1)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                alpha = np.where(below, (lo - wt) / d, np.inf)
-                alpha = np.minimum(alpha, np.where(above, (hi - wt) / d, np.inf))
-            r = rows[: todo.size]
-            blk = np.argmin(alpha, axis=1)
-            step = np.clip(alpha[r, blk], 0.0, 1.0)
-            w_new = np.where(infeasible[:, None], wt + step[:, None] * d, wb)
-            lo_new, hi_new = lo_b.copy(), hi_b.copy()
-            inf_r = r[infeasible]
-            lo_new[inf_r, blk[infeasible]] |= below[inf_r, blk[infeasible]]
-            hi_new[inf_r, blk[infeasible]] |= above[inf_r, blk[infeasible]]
-            # feasible frames: check multipliers, release the worst
-            grad = (Ab @ w_new[..., None])[..., 0] - bb
-            viol = np.where(lo_b, -grad, 0.0) + np.where(hi_b, grad, 0.0)  # > 0: wrong sign
-            worst = np.argmax(viol, axis=1)
-            release = ~infeasible & (viol[r, worst] > 1e-10)
-            rel_r = r[release]
-            lo_new[rel_r, worst[release]] = False
-            hi_new[rel_r, worst[release]] = False
-            w[todo] = np.clip(w_new, lo, hi)
-            at_lo[todo] = lo_new
-            at_hi[todo] = hi_new
-            todo = todo[infeasible | release]
-        self.unconverged = int(todo.size)
+        lo_a = np.full((F, K), self.lo)
+        hi_a = np.full((F, K), self.hi) if hi is None else np.minimum(hi, self.hi)
+        w0 = None
+        if start is None and shared and F > 1:
+            if not hasattr(self, "_full_inv"):
+                self._full_inv = np.linalg.inv(self._full)
+            w0 = b @ self._full_inv.T
+        w, info = box_qp(A, b, lo_a, hi_a, self.params.active_set_passes, start=start, w0=w0)
+        self.last_passes, self.unconverged = info["passes"], info["unconverged"]
         return w
 
     def _pattern_systems(self, vis: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
@@ -228,15 +166,17 @@ class RiberaRetargeter:
 
     CACHE_PATTERNS = 1024  # (K, K) + (K, 6) floats each: about 25 MB at K = 53
 
-    def solve(self, da: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
-        """Weights (F, K) for stabilized actor displacements da (F, M, 3) (NaN gaps).
+    def solve(self, da: np.ndarray, start: np.ndarray | None = None, plain: bool = False) -> np.ndarray:
+        """Weights (F, K) for stabilized actor displacements da (F, M, 3) (NaN gaps), frames in time order
+        (the plausibility options smooth their decisions over time).
 
         ``start`` (F, K): weights of a nearby problem (e.g. the same frames before a rigid re-fit) whose
         active set seeds the bounded solve (with ``bounds`` and lo >= 0); the result is the same minimizer.
+        ``plain``: eq. 16 only, without the plausibility options (a first pass for the rigid re-fit).
         """
         da = np.asarray(da, float)
         if da.ndim == 2:
-            return self.solve(da[None], None if start is None else np.asarray(start)[None])[0]
+            return self.solve(da[None], None if start is None else np.asarray(start)[None], plain)[0]
         F = da.shape[0]
         vis = visible_mask(da)
         partial = ~vis.all(1)
@@ -253,8 +193,10 @@ class RiberaRetargeter:
         lam = self.params.lambda_mm / self.K
         shared = not partial.any()
         if self.lo >= 0:
-            # with w >= 0 the L1 term is linear, (lambda/K) sum_k w_k: exact, no reweighting needed
-            return self._bounded_solve(A, b - lam, shared, start=start)
+            # eq. 16 with w >= 0: the L1 term is linear, (lambda/K) sum_k w_k: exact, no reweighting needed
+            if plain or not self.plausible:
+                return self._bounded_solve(A, b - lam, shared, start=start)
+            return self._solve_plausible(A, b, da, lam, shared, start)
         w = self._bounded_solve(A, b, shared)
         if lam > 0:
             diag_idx = np.arange(self.K)
@@ -262,6 +204,46 @@ class RiberaRetargeter:
                 Ai = A.copy()
                 Ai[:, diag_idx, diag_idx] += lam / (np.abs(w) + self.params.irls_eps)
                 w = self._bounded_solve(Ai, b)
+        return w
+
+    @property
+    def plausible(self) -> bool:
+        """Whether any plausibility option (:mod:`.plausible`) is on."""
+        p = self.params
+        return p.sparsity != "l1" or p.antagonists or (p.still_gate and self.still_noise is not None)
+
+    def _solve_plausible(self, A: np.ndarray, b: np.ndarray, da: np.ndarray, lam: float, shared: bool,
+                         start: np.ndarray | None) -> np.ndarray:
+        """The bounded solve with the options of :mod:`.plausible`: still-region upper bounds, the log
+        sparsity penalty's reweighting passes, then antagonist exclusion rounds (each a warm-started exact
+        bounded solve)."""
+        p = self.params
+        hi = None
+        if p.still_gate and self.still_noise is not None:
+            hi = still_upper_bounds(da, self.support, p.still_ratio * self.still_noise, self.hi,
+                                    p.coherence_frames)
+        w = self._bounded_solve(A, b - lam, shared, start=start, hi=hi)
+        slopes = lam
+        push = p.antagonists and self.antagonist_pairs.size and p.antagonist_lambda_cm > 0
+        if p.sparsity == "log" or push:
+            lam_s = p.sparsity_lambda_mm / self.K
+            gamma = p.antagonist_lambda_mm / self.K
+            for _ in range(REWEIGHT_PASSES):
+                slopes = reweighted_slopes(w, lam_s, p.sparsity_eps, p.coherence_frames) if p.sparsity == "log" \
+                    else np.full(w.shape, lam)
+                if push:
+                    slopes = slopes + antagonist_slopes(w, self.antagonist_pairs, gamma, p.coherence_frames)
+                w = self._bounded_solve(A, b - slopes, start=w, hi=hi)
+        if p.antagonists and self.antagonist_pairs.size:
+            hi_a = np.full(w.shape, self.hi) if hi is None else hi.copy()
+            for _ in range(ANTAGONIST_ROUNDS):
+                pin = antagonist_pins(w, self.antagonist_pairs, p.coherence_frames)
+                if not pin.any():
+                    break
+                hi_a[pin] = self.lo
+                rows = np.flatnonzero(pin.any(1))
+                sl = slopes if np.ndim(slopes) == 0 else slopes[rows]
+                w[rows] = self._bounded_solve(A[rows], b[rows] - sl, start=w[rows], hi=hi_a[rows])
         return w
 
     def solve_frame(self, da: np.ndarray) -> np.ndarray:
