@@ -19,10 +19,13 @@ rule metrics:
 
 
 rule report:
-    """Metrics with pass/warn/fail, the stages' pictures and rule timings, in one HTML file."""
+    """The decision page: per-stage pass/warn/fail with limits, the stages' pictures, a 3D view of the
+    personalized rig and of every retargeted take on its character (three.js inlined: run
+    `python -m rigbuild.assets.web install` once), metrics and rule timings, in one HTML file."""
     input:
         metrics="results/{session}/metrics.json",
         stages=lambda wc: stage_targets(wc.session),
+        characters=lambda wc: [results(wc.session, "characters", f"{c}.npz") for c in CHARACTERS],
     output:
         html=report("results/{session}/report.html", category="Report",
                     caption="../workflow/report/session_report.rst"),

@@ -1,18 +1,26 @@
-"""The report's pass / warn / fail for every headline key (rigbuild.report: thresholds, html, table)."""
+"""The report's pass / warn / fail, its summary and verdict, its compact tables and its limits
+(rigbuild.report: thresholds, summary, html, grids, params, table)."""
 
 from __future__ import annotations
 
 import html as htmllib
+import json
 import re
 
+import numpy as np
 import pytest
 
+from rigbuild.errors import InputError
 from rigbuild.io.metrics import flatten_metrics
+from rigbuild.paths import PROJECT_ROOT
 from rigbuild.report.html import build_report
+from rigbuild.report.params import from_config
+from rigbuild.report.summary import STAGES, summarize, worst
 from rigbuild.report.table import format_metrics_table
 from rigbuild.report.thresholds import DEFAULT_THRESHOLDS, limits_text, rule_for, split_headline, status
 
 STATUSES = ("pass", "warn", "fail")
+DEMO_METRICS = PROJECT_ROOT / "benchmarks" / "out" / "metrics-demo.json"
 
 
 def _value(rule, want: str) -> float:
@@ -36,8 +44,8 @@ def _nest(flat: dict) -> dict:
 
 @pytest.fixture
 def every_headline():
-    """metrics.json with every headline key (``*`` as the character ``template``), cycling pass / warn / fail,
-    and a few keys without threshold."""
+    """metrics.json with every headline key (``*`` as ``template``), cycling pass / warn / fail, and a few keys
+    without threshold."""
     flat, expected = {}, {}
     for i, (pattern, rule) in enumerate(DEFAULT_THRESHOLDS.items()):
         key = pattern.replace("*", "template")
@@ -51,70 +59,137 @@ def every_headline():
     return _nest(flat), expected
 
 
-def _rows(text: str) -> dict[str, tuple[str, str, str | None]]:
-    """key -> (value text, status, limits or None) of every metric row of the page."""
+def _judged_rows(text: str) -> dict[str, tuple[str, str, str]]:
+    """stage-relative key -> (value text, status, limits) of every gate / ground-truth row of the page."""
     out = {}
-    for m in re.finditer(r'<tr><td>([^<]+)</td><td class="num">(.*?)</td><td>(.*?)</td>(?:<td>(.*?)</td>)?</tr>', text):
-        badge = re.search(r'class="badge (\w+)"', m.group(3))
-        out[htmllib.unescape(m.group(1))] = (m.group(2), badge.group(1) if badge else "",
-                                             None if m.group(4) is None else htmllib.unescape(m.group(4)))
+    for m in re.finditer(r'<tr><td>([^<]+)</td><td class="num (\w*)">(.*?)</td><td><span class="badge (\w+)">'
+                         r'.*?</span></td><td>(.*?)</td></tr>', text):
+        out[htmllib.unescape(m.group(1))] = (m.group(3), m.group(2), htmllib.unescape(m.group(5)))
     return out
+
+
+def _section(page: str, sec: str) -> str:
+    return page.split(f'<section id="{sec}">', 1)[1].split("</section>", 1)[0]
 
 
 def test_every_headline_key_renders_its_status_and_limits(tmp_path, every_headline):
     metrics, expected = every_headline
     page = build_report(tmp_path, "s1", metrics)
-    rows = _rows(page)
-    for key, want in expected.items():
-        assert key in rows, key
-        _, st, limits = rows[key]
-        assert st == want, (key, st, want)
-        direction, ok, warn = rule_for(key)
-        op = "≤" if direction == "max" else "≥"
-        assert limits == f"pass {op} {ok:g}, warn {op} {warn:g}", (key, limits)
-    # keys without a threshold: no status, no limits column, folded under <details>
-    for key in ("calibration.n_cameras", "tracking.visible_corr_mean_error_mm",
-                "tracking.sequences.rom00.mean_error_mm", "personalization.residual_reduction_weighted",
-                "retarget.ribera_paper.template.mean_correlation"):
-        assert rows[key][1] == "" and rows[key][2] is None, key
-    n = {s: sum(1 for w in expected.values() if w == s) for s in STATUSES}
-    assert f'<span>{n["pass"]} pass</span><span>{n["warn"]} warn</span><span>{n["fail"]} fail</span>' in page
-    assert "<span>0 not measured</span>" in page and 'session fail' in page
+    for stage in STAGES:
+        rows = _judged_rows(_section(page, stage.id))
+        for key, want in expected.items():
+            if not key.startswith(stage.prefix + "."):
+                continue
+            short = key[len(stage.prefix) + 1:]
+            assert short in rows, key
+            _, cell, limits = rows[short]
+            assert cell == want, (key, cell, want)
+            direction, ok, warn = rule_for(key)
+            op = "≤" if direction == "max" else "≥"
+            assert limits == f"pass {op} {ok:g}, warn {op} {warn:g}", (key, limits)
+    # keys without a threshold are in the grids or the scalar list, with no status colour
+    assert '<td class="num " title="tracking.sequences.rom00.mean_error_mm">9</td>' in page
+    assert '<td class="num " title="calibration.n_cameras">6</td>' in page
+    assert "ribera_paper / template" in page and "seol_paper / template" in page
 
 
-def test_each_section_lists_its_headline_keys_first_and_folds_the_rest(tmp_path, every_headline):
-    metrics, expected = every_headline
-    page = build_report(tmp_path, "s1", metrics)
-    for sec in ("calibration", "reconstruction", "tracking", "personalization", "retargeting"):
-        body = page.split(f'<section id="{sec}">', 1)[1].split("</section>", 1)[0]
-        head, _, folded = body.partition("<details>")
-        assert '<table class="headline">' in head and "<th>limits</th>" in head
-        head_keys = list(_rows(head))
-        assert head_keys and all(k in expected for k in head_keys), (sec, head_keys)
-        assert all(k not in expected for k in _rows(folded)), sec
-        # in the threshold table's order
-        order = [k.replace("*", "template") for k in DEFAULT_THRESHOLDS]
-        assert head_keys == sorted(head_keys, key=order.index)
-    tracking = page.split('<section id="tracking">', 1)[1].split("</section>", 1)[0]
-    assert list(_rows(tracking.partition("<details>")[0])) == [
-        "tracking.mean_error_mm", "tracking.p95_error_mm", "tracking.end_drift_mm", "tracking.visible_mean_error_mm",
-        "tracking.visible_p95_error_mm", "tracking.visible_end_drift_mm"]
-    assert "<summary>2 more metrics</summary>" in tracking
+def test_the_summary_row_of_each_stage_is_its_worst_status_and_the_verdict_the_worst_stage():
+    flat = {
+        "calibration.rms_px": 0.1,                                # pass (<= 0.2)
+        "calibration.rotation_error_deg": 0.05,                   # warn (ground truth)
+        "tracking.sequences.rom00.median_residual_mm": 0.3,       # pass
+        "tracking.sequences.rom01.median_residual_mm": 0.7,       # warn: the worst sequence is the number
+        "tracking.lost_frames": 0,                                # pass
+        "personalization.residual_final_mm": 0.4,                 # pass
+        "personalization.residual_reduction": 0.2,                # fail (>= 0.3 to warn)
+        "retarget.seol.template.mean_correlation": 0.95,          # pass (ground truth)
+        "retarget.seol.template.n_frames": 300,
+    }
+    rows, verdict = summarize(flat)
+    by = {r.stage.id: r for r in rows}
+    assert verdict == "fail"
+    cal = by["calibration"]
+    assert cal.status == "warn" and cal.number.key == "calibration.rms_px" and cal.number.status == "pass"
+    assert cal.missing_gates == ["calibration.heldout_reprojection_rms_px"]
+    assert [j.key for j in cal.truth] == ["calibration.rotation_error_deg"]
+    assert by["reconstruction"].status == "" and by["reconstruction"].number is None
+    trk = by["tracking"]
+    assert trk.status == "warn" and trk.number.key == "tracking.sequences.rom01.median_residual_mm"
+    assert [j.key for j in trk.gates] == ["tracking.sequences.rom01.median_residual_mm",
+                                         "tracking.sequences.rom00.median_residual_mm", "tracking.lost_frames"]
+    per = by["personalization"]
+    assert per.status == "fail" and per.number.key == "personalization.residual_final_mm"
+    assert per.missing_gates == ["personalization.heldout_residual_final_mm",
+                                 "personalization.heldout_residual_reduction"]
+    ret = by["retargeting"]
+    assert ret.status == "pass" and ret.number.key == "retarget.seol.template.mean_correlation" and not ret.gates
+    assert worst(["pass", "", "warn"]) == "warn" and worst([]) == ""
+    # lost frames: none passes, up to two warn, more fail
+    assert [status("tracking.lost_frames", n) for n in (0, 2, 3)] == ["pass", "warn", "fail"]
 
 
-def test_a_headline_goal_without_a_number_is_shown_not_measured(tmp_path):
+def test_the_page_opens_with_the_verdict_and_one_row_per_stage_with_its_limit(tmp_path):
+    flat = {"calibration.rms_px": 0.1, "tracking.lost_frames": 3, "tracking.sequences.rom00.median_residual_mm": 0.2}
+    page = build_report(tmp_path, "s1", _nest(flat))
+    head = page.split('<section id="summary">', 1)[1].split("</section>", 1)[0]
+    assert '<span class="badge fail">session fail</span>' in head
+    assert "no ground truth (a real capture): judged by its gates alone" in head
+    assert "capture gates (no ground truth needed): 2 pass, 1 fail, 8 not measured" in head
+    rows = re.findall(r'<tr><th><a href="#(\w+)">', head)
+    assert rows == ["calibration", "reconstruction", "tracking", "personalization", "retargeting"]
+    cal = head.split('href="#calibration"', 1)[1].split("</tr>", 1)[0]
+    assert ('<td>rms_px</td><td class="num pass">0.1</td><td>pass ≤ 0.2, warn ≤ 0.5</td>' in cal)
+    trk = head.split('href="#tracking"', 1)[1].split("</tr>", 1)[0]
+    assert '<span class="badge fail">fail</span>' in trk and "sequences.rom00.median_residual_mm" in trk
+    assert page.index('id="summary"') < page.index('id="calibration"')
+    # a real capture lists no ground-truth goal as "not measured"; its missing gates are listed
+    assert "rotation_error_deg" not in page and "heldout_reprojection_rms_px" in page
+
+
+def test_a_session_with_ground_truth_lists_its_unmeasured_goals(tmp_path):
     page = build_report(tmp_path, "s1", {"tracking": {"mean_error_mm": 0.2, "lost_frames": 0},
                                          "personalization": {"residual_reduction": 0.6}})
-    rows = _rows(page)
-    assert rows["tracking.mean_error_mm"][1] == "pass"
-    for key in ("tracking.p95_error_mm", "tracking.end_drift_mm", "tracking.visible_mean_error_mm",
-                "personalization.heldout_residual_reduction", "personalization.heldout_expression_error_reduction"):
-        assert rows[key][0] == "<em>not measured</em>" and rows[key][1] == "" and rows[key][2], key
-    assert "calibration.rms_px" not in rows  # a stage with no metrics at all says so once
-    assert "No metrics for this stage." in page
-    n_missing = sum(1 for k in DEFAULT_THRESHOLDS if k.startswith(("tracking.", "personalization."))) - 2
-    assert n_missing == 5 + 7  # tracking: 6 headline keys, 1 measured; personalization: 8, 1 measured
-    assert f"<span>{n_missing} not measured</span>" in page and "session pass" in page
+    trk = _section(page, "tracking")
+    for key in ("p95_error_mm", "end_drift_mm", "visible_mean_error_mm"):
+        assert f"<tr><td>{key}</td><td><em>not measured</em></td>" in trk, key
+    assert "No metrics for this stage." in _section(page, "calibration")
+    assert "ground truth: 1 pass" in page and '<span class="badge pass">session pass</span>' in page
+
+
+def test_per_sequence_and_per_character_keys_are_grids_and_the_demo_page_is_compact(tmp_path):
+    metrics = json.loads(DEMO_METRICS.read_text())
+    flat = flatten_metrics(metrics)
+    page = build_report(tmp_path, "demo", metrics)
+    trk = _section(page, "tracking")
+    grid = trk.split('<table class="grid">', 1)[1].split("</table>", 1)[0]
+    assert re.findall(r"<tr><th>(rom\d+)</th>", grid) == ["rom00", "rom01", "rom02", "rom03"]
+    assert "<th>mean_error_mm</th>" in grid and "<th>lost_frames</th>" in grid
+    ret = _section(page, "retargeting").split('<table class="grid">', 1)[1].split("</table>", 1)[0]
+    assert "<tr><th>ribera / template</th>" in ret and "<tr><th>seol / sculpted</th>" in ret
+    assert len(flat) == 569 and page.count("<tr") < 180  # 569 keys, one table row per sequence / method+character
+    # every key is on the page: a grid or list cell titled with it, or a gate / ground-truth row naming it
+    for key in flat:
+        stage, short = key.split(".", 1)
+        assert f'title="{key}' in page or f"<tr><td>{short}</td>" in page, key
+
+
+def test_per_session_limits_override_the_configs_which_override_the_defaults():
+    p = from_config({"thresholds": {"calibration.rms_px": ["max", 0.3, 0.6]},
+                     "sessions": {"s2": {"thresholds": {"calibration.rms_px": ["max", 0.1, 0.2],
+                                                         "tracking.lost_frames": ["max", 1, 4]}}}})
+    assert p.for_session("s1") == {"calibration.rms_px": ("max", 0.3, 0.6)}
+    assert p.for_session("s2") == {"calibration.rms_px": ("max", 0.1, 0.2), "tracking.lost_frames": ("max", 1, 4)}
+    assert status("calibration.rms_px", 0.25, p.for_session("s1")) == "pass"
+    assert status("calibration.rms_px", 0.25, p.for_session("s2")) == "fail"
+    assert status("calibration.rms_px", 0.25) == "warn"
+    with pytest.raises(InputError, match="params.report.sessions.s2.thresholds.calibration.rms_px"):
+        from_config({"sessions": {"s2": {"thresholds": {"calibration.rms_px": ["max", "a", 0.2]}}}})
+    with pytest.raises(InputError, match="did you mean 'thresholds'"):
+        from_config({"sessions": {"s2": {"threshold": {}}}})
+    with pytest.raises(InputError, match="params.report.thresholds.x"):
+        from_config({"thresholds": {"x": ["less", 1, 2]}})
+    with pytest.raises(InputError, match="did you mean 'sessions'"):
+        from_config({"session": {}})
 
 
 def test_thresholds_new_and_renamed_keys_keep_the_goals():
@@ -125,6 +200,10 @@ def test_thresholds_new_and_renamed_keys_keep_the_goals():
     assert t["personalization.residual_reduction"] == ("min", 0.5, 0.3)
     assert t["personalization.heldout_residual_reduction"] == ("min", 0.4, 0.2)
     assert t["personalization.heldout_expression_error_reduction"] == ("min", 0.4, 0.2)
+    assert t["calibration.heldout_reprojection_rms_px"] == ("max", 0.5, 1.0)
+    # a tracked sequence's residual to its scan passes below the tracking goal and warns up to the tracker's
+    # lost-frame residual (params.track lost_residual_mm = 1.0)
+    assert t["tracking.sequences.*.median_residual_mm"] == ("max", 0.5, 1.0)
     assert not any(k.startswith("tracking.mask_") or k.endswith("_unweighted") for k in t)
     # the limits are inclusive; a pattern matches one character; an override takes the key's place
     assert status("tracking.mean_error_mm", 0.5) == "pass" and status("tracking.mean_error_mm", 0.5001) == "warn"
@@ -147,3 +226,19 @@ def test_text_table_shows_headline_keys_first_with_limits(every_headline):
     assert n_fail == sum(1 for w in expected.values() if w == "fail")
     row = next(ln for ln in lines if ln.startswith("tracking.visible_mean_error_mm "))
     assert row.split()[2] == expected["tracking.visible_mean_error_mm"] and row.endswith("pass <= 0.5, warn <= 1")
+
+
+def test_pictures_are_embedded_downscaled_as_jpeg(tmp_path):
+    import cv2
+
+    from rigbuild.report.images import jpeg_bytes
+
+    img = np.zeros((500, 1000, 3), np.uint8)
+    img[:, 500:] = 200
+    (tmp_path / "calib").mkdir()
+    cv2.imwrite(str(tmp_path / "calib" / "residuals.png"), img)
+    out = cv2.imdecode(np.frombuffer(jpeg_bytes(tmp_path / "calib" / "residuals.png", 400, 80), np.uint8), 1)
+    assert out.shape == (200, 400, 3) and abs(int(out[100, 300, 0]) - 200) <= 3
+    page = build_report(tmp_path, "s1", {"calibration": {"rms_px": 0.1}}, image_width=400)
+    assert page.count("data:image/jpeg;base64,") == 1 and "data:image/png" not in page
+    assert "calib/residuals.png</figcaption>" in _section(page, "calibration")

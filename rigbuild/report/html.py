@@ -1,14 +1,15 @@
-"""Build the self-contained HTML session report.
+"""Build the session report: the technician's decision page, one HTML file that works offline.
 
-Every stage section shows its headline numbers from ``metrics.json`` (the keys with a threshold,
-:mod:`rigbuild.report.thresholds`, overridable in the config) first, each with pass / warn / fail and its
-limits, the rest folded below them, and the pictures the stage wrote. Images
-are embedded as base64 so the file opens offline; rule timings come from Snakemake ``benchmark:`` files.
+Top of the page (visible without scrolling at 1400x900): the session verdict and one row per stage with its
+pass / warn / fail, the number that matters with its limit beside it (:mod:`rigbuild.report.summary`), its
+gates (judged without ground truth) and its worst ground-truth number. Below: the 3D view (the personalized
+rig with one slider per shape, each retargeted take played on its character; :mod:`rigbuild.report.viewer`),
+then one section per stage with its pictures (downscaled JPEG) and, collapsed, every metric: gates, ground
+truth, per-sequence / per-character grids, the rest; rule timings last.
 """
 
 from __future__ import annotations
 
-import base64
 import csv
 import html
 import os
@@ -16,102 +17,154 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from rigbuild.report.thresholds import limits_text, missing_headline, rule_for, split_headline, status
 from rigbuild.io.metrics import flatten_metrics
 from rigbuild.progress import progress
+from rigbuild.report.grids import fmt, grid_html, scalars_html, split_grid
+from rigbuild.report.images import figure
+from rigbuild.report.summary import STAGES, Judged, StageSummary, counts, summarize
+from rigbuild.report.thresholds import limits_text, missing_headline
+
+ASSETS = Path(__file__).parent
 
 
 @dataclass
-class Section:
-    """A report section: ``stage`` is the metrics.json key; ``images`` glob patterns under results/<s>/."""
+class Pictures:
+    """A section's pictures: ``shown`` open under the heading, ``more`` folded as thumbnails. Each entry is
+    (glob under results/<s>/, at most this many files per folder)."""
 
-    id: str
-    title: str
-    stage: str | Sequence[str]
-    images: Sequence[str]
-    caption: str
-    max_images: int = 12
+    shown: Sequence[tuple[str, int]]
+    more: Sequence[tuple[str, int]] = ()
+    caption: str = ""
 
 
-SECTIONS = [
-    Section("calibration", "Calibration", "calibration", ["calib/residuals.png", "calib/camera_layout.png"],
-            "Reprojection residuals per camera and the camera layout. Re-shoot cameras whose RMS fails."),
-    Section("reconstruction", "Reconstruction", "reconstruction", ["reconstruct/*/coverage.png"],
-            "Per-frame coverage of the multi-view stereo (fraction of the face seen by 2+ views)."),
-    Section("tracking", "Tracking", "tracking",
-            ["track/*/residuals.png", "track/*/overlay/*.png"],
-            "Tracking residual over time and the tracked mesh over the images. Lost frames are listed in the metrics."),
-    Section("personalization", "Personalization", "personalization",
-            ["personalize/convergence.png", "personalize/heatmaps/*.png"],
-            "EM objective per iteration (must not increase) and per-shape change against the initial rig."),
-    Section("retargeting", "Retargeting", ["retarget"],
-            ["retarget/*/*/*/velocity_error.png", "retarget/*/*/*/preview.png"],
-            "Velocity error of the spacetime solve against its per-frame baselines (Seol), and actor and "
-            "character side by side at the most active frames.", max_images=24),
-]
+PICTURES = {
+    "calibration": Pictures([("calib/residuals.png", 1), ("calib/camera_layout.png", 1)], [],
+                            "Reprojection residuals per camera and the camera layout: re-shoot cameras whose RMS "
+                            "fails."),
+    "reconstruction": Pictures([("reconstruct/*/coverage.png", 1)], [("reconstruct/*/coverage/*.png", 2)],
+                               "Per-frame coverage of the multi-view stereo (fraction of the face seen by 2+ "
+                               "views); below, the first frames' coverage renders of each sequence."),
+    "tracking": Pictures([("track/*/residuals.png", 1)], [("track/*/overlay/*.png", 3)],
+                         "Tracking residual over time per sequence; below, the tracked mesh over the images."),
+    "personalization": Pictures([("personalize/convergence.png", 1), ("personalize/heatmaps/overview.png", 1)],
+                                [("personalize/heatmaps/*.png", 200)],
+                                "EM objective per iteration (must not increase) and the change of every shape "
+                                "against the initial rig; below, one heat map per shape."),
+    "retargeting": Pictures([("retarget/ribera/*/*/preview.png", 4)],
+                            [("retarget/*/*/*/preview.png", 50), ("retarget/*/*/*/velocity_error.png", 50)],
+                            "Actor and character side by side at the most active frames (Ribera); below, every "
+                            "method's previews and Seol's velocity error against its per-frame baselines."),
+}
 
-_CSS = """
-body{font-family:system-ui,sans-serif;margin:2em;max-width:1200px;color:#222}
-h1{margin-bottom:0} .sub{color:#666;margin-top:.2em}
-section{border-top:2px solid #ddd;margin-top:2em;padding-top:.5em}
-table{border-collapse:collapse;margin:.5em 0} td,th{padding:3px 10px;border-bottom:1px solid #eee;text-align:left}
-td.num{text-align:right;font-variant-numeric:tabular-nums}
-.pass{background:#d8f5d0}.warn{background:#fff2c2}.fail{background:#ffd0d0}
-.badge{padding:1px 8px;border-radius:8px;font-weight:600}
-figure{display:inline-block;margin:6px;vertical-align:top} figure img{max-width:560px;border:1px solid #ccc}
-figcaption{font-size:12px;color:#555;max-width:560px;word-break:break-all}
-.summary span{margin-right:1em}
-details{margin:.5em 0} summary{cursor:pointer;color:#444}
-"""
+_CSS = (ASSETS / "report.css").read_text(encoding="utf-8")
 
 
-def _img_tag(path: Path) -> str:
-    data = base64.b64encode(path.read_bytes()).decode("ascii")
-    mime = "image/png" if path.suffix.lower() == ".png" else "image/jpeg"
-    return f'<img alt="{html.escape(path.name)}" src="data:{mime};base64,{data}">'
+def _badge(st: str, text: str | None = None) -> str:
+    return f'<span class="badge {st or "none"}">{html.escape(text or st or "not measured")}</span>'
 
 
-def _row(key: str, value: Any, thresholds: Mapping | None, with_limits: bool) -> tuple[str, str]:
-    """(status, one table row) of a flat metric; ``value`` None: a headline the run did not measure."""
-    if value is None:
-        st, text = "", "<em>not measured</em>"
+def _short(key: str, prefix: str) -> str:
+    return key[len(prefix) + 1:] if key.startswith(prefix + ".") else key
+
+
+def _counts_text(judged: Sequence[Judged], missing: int = 0) -> str:
+    c = counts(judged)
+    parts = [f"{n} {s}" for s, n in c.items() if n]
+    if missing:
+        parts.append(f"{missing} not measured")
+    return ", ".join(parts) or "none"
+
+
+def _summary_row(s: StageSummary) -> str:
+    st = s.stage
+    n = s.number
+    if n is None:
+        number = '<td colspan="3"><em>nothing measured with a limit</em></td>'
     else:
-        st = status(key, value, thresholds)
-        text = f"{value:.4g}" if isinstance(value, float) else html.escape(str(value))
-    badge = f'<span class="badge {st}">{st}</span>' if st else ""
-    limits = f"<td>{html.escape(limits_text(rule_for(key, thresholds), '≤', '≥'))}</td>" if with_limits else ""
-    return st, f'<tr><td>{html.escape(key)}</td><td class="num">{text}</td><td>{badge}</td>{limits}</tr>'
+        tag = "" if n in s.gates else ' <span class="gt">ground truth</span>'
+        number = (f'<td>{html.escape(_short(n.key, st.prefix))}{tag}</td><td class="num {n.status}">{fmt(n.value)}</td>'
+                  f"<td>{html.escape(limits_text(n.rule, '≤', '≥'))}</td>")
+    gates = _counts_text(s.gates, len(s.missing_gates))
+    if s.truth:
+        w = s.truth[0]
+        truth = (f"{_counts_text(s.truth)}; worst {html.escape(_short(w.key, st.prefix))} "
+                 f"<b class=\"{w.status}\">{fmt(w.value)}</b> ({html.escape(limits_text(w.rule, '≤', '≥'))})")
+    else:
+        truth = "—"
+    return (f'<tr><th><a href="#{st.id}">{st.title}</a></th><td>{_badge(s.status)}</td>{number}'
+            f"<td>{gates}</td><td>{truth}</td></tr>")
 
 
-def _metric_rows(metrics: Mapping[str, Any], stages: Sequence[str], thresholds: Mapping | None) -> tuple[str, dict]:
-    """A section's metrics: the headline keys (those with a threshold, :func:`split_headline`) first with their
-    status and limits, headline goals the run has no number for marked "not measured", and every other key
-    folded in a ``<details>`` table. Returns (HTML, counts of pass / warn / fail / missing headline keys)."""
-    flat = flatten_metrics({k: v for k, v in metrics.items() if k in stages})
-    counts = {"pass": 0, "warn": 0, "fail": 0, "missing": 0}
-    if not flat:
-        return "<p><em>No metrics for this stage.</em></p>", counts
-    head, rest = split_headline(flat, thresholds)
-    missing = missing_headline(flat, tuple(f"{s}." for s in stages), thresholds)
-    rows = []
-    for key in head + missing:
-        st, row = _row(key, flat.get(key) if key in head else None, thresholds, True)
-        if st:
-            counts[st] += 1
-        counts["missing"] += key in missing
-        rows.append(row)
-    out = ""
-    if rows:
-        out = ('<table class="headline"><tr><th>headline metric</th><th>value</th><th>status</th><th>limits</th></tr>'
-               + "".join(rows) + "</table>")
-    if rest:
-        body = "".join(_row(k, flat[k], thresholds, False)[1] for k in rest)
-        out += (f"<details><summary>{len(rest)} more metrics</summary><table><tr><th>metric</th><th>value</th>"
-                f"<th>status</th></tr>{body}</table></details>")
-    return out, counts
+def summary_html(rows: Sequence[StageSummary], verdict: str, session: str, limits_note: str) -> str:
+    """The verdict line and the per-stage table."""
+    gates = [j for r in rows for j in r.gates]
+    truth = [j for r in rows for j in r.truth]
+    n_missing = sum(len(r.missing_gates) for r in rows)
+    gt = (f"ground truth: {_counts_text(truth)}" if truth
+          else "no ground truth (a real capture): judged by its gates alone")
+    badge = _badge(verdict, f"session {verdict or 'not measured'}")
+    return (f'<section id="summary"><h1>{html.escape(session)} {badge}</h1>'
+            f'<p class="sub">capture gates (no ground truth needed): {_counts_text(gates, n_missing)} · {gt} · '
+            f"{html.escape(limits_note)}</p>"
+            '<table class="summary"><tr><th>stage</th><th>status</th><th>the number that matters</th><th>value</th>'
+            "<th>limit</th><th>capture gates</th><th>vs ground truth</th></tr>"
+            + "".join(_summary_row(r) for r in rows) + "</table></section>")
 
 
-def _timings(results_dir: Path) -> str:
+def _judged_table(judged: Sequence[Judged], missing: Sequence[str], prefix: str, title: str) -> str:
+    if not judged and not missing:
+        return ""
+    rows = [f'<tr><td>{html.escape(_short(j.key, prefix))}</td><td class="num {j.status}">{fmt(j.value)}</td>'
+            f"<td>{_badge(j.status)}</td><td>{html.escape(limits_text(j.rule, '≤', '≥'))}</td></tr>" for j in judged]
+    rows += [f"<tr><td>{html.escape(_short(k, prefix))}</td><td><em>not measured</em></td><td></td><td></td></tr>"
+             for k in missing]
+    return (f'<table class="judged"><tr><th>{title}</th><th>value</th><th>status</th><th>limit</th></tr>'
+            f'{"".join(rows)}</table>')
+
+
+def metrics_html(flat: Mapping[str, Any], s: StageSummary, thresholds: Mapping | None, has_truth: bool) -> str:
+    """A stage's metrics, folded: gates, ground-truth keys (missing ones listed when the session has ground
+    truth), the per-sequence / per-character grid and the other keys."""
+    prefix = s.stage.prefix
+    own = {k: v for k, v in flat.items() if k.startswith(prefix + ".")}
+    if not own:
+        return "<p><em>No metrics for this stage.</em></p>"
+    missing = [k for k in missing_headline(own, (prefix + ".",), thresholds)
+               if not any(k == g for g in s.stage.gates)] if has_truth else []
+    shown = {j.key for j in s.gates + s.truth}
+    grid, rest = split_grid({k: v for k, v in own.items() if k not in shown}, prefix)
+    row_label = "method / character" if prefix == "retarget" else "sequence"
+    body = (_judged_table(s.gates, s.missing_gates, prefix, "capture gate")
+            + _judged_table(s.truth, missing, prefix, "vs ground truth")
+            + grid_html(flat, grid, thresholds, row_label) + scalars_html(rest, thresholds))
+    return f"<details><summary>metrics ({len(own)})</summary>{body}</details>"
+
+
+def _pictures(results_dir: Path, patterns: Sequence[tuple[str, int]], width: int, quality: int,
+              skip: set[Path]) -> list[str]:
+    figs = []
+    for pattern, per_folder in patterns:
+        taken: dict[Path, int] = {}
+        for p in sorted(results_dir.glob(pattern)):
+            if p in skip or taken.get(p.parent, 0) >= per_folder:
+                continue
+            taken[p.parent] = taken.get(p.parent, 0) + 1
+            skip.add(p)
+            figs.append(figure(p, str(p.relative_to(results_dir)), width, quality))
+    return figs
+
+
+def pictures_html(results_dir: Path, pics: Pictures, width: int, quality: int) -> str:
+    seen: set[Path] = set()
+    shown = _pictures(results_dir, pics.shown, width, quality, seen)
+    more = _pictures(results_dir, pics.more, max(160, width // 2), quality, seen)
+    out = f'<div class="figs">{"".join(shown)}</div>' if shown else "<p><em>No pictures for this stage.</em></p>"
+    if more:
+        out += f'<details><summary>{len(more)} more pictures</summary><div class="figs small">{"".join(more)}</div></details>'
+    return out
+
+
+def timings_html(results_dir: Path) -> str:
     rows = []
     for tsv in sorted((results_dir / "benchmarks").glob("*.tsv")):
         with open(tsv) as fh:
@@ -123,48 +176,63 @@ def _timings(results_dir: Path) -> str:
     total = sum(r[1] for r in rows)
     body = "".join(f'<tr><td>{html.escape(n)}</td><td class="num">{s:.1f}</td><td class="num">{m}</td></tr>'
                    for n, s, m in rows)
-    return (f"<p>{len(rows)} jobs, {total:.0f} s of job time in total.</p><table><tr><th>rule (job)</th>"
-            f"<th>seconds</th><th>max RSS (MB)</th></tr>{body}</table>")
+    return (f"<details><summary>{len(rows)} jobs, {total:.0f} s of job time in total</summary><table><tr>"
+            f"<th>rule (job)</th><th>seconds</th><th>max RSS (MB)</th></tr>{body}</table></details>")
 
 
 def build_report(results_dir: str | os.PathLike, session: str, metrics: Mapping[str, Any],
-                 thresholds: Mapping | None = None) -> str:
-    """The report HTML text for one session's results folder."""
+                 thresholds: Mapping | None = None, *, three_js: str | None = None, image_width: int = 560,
+                 jpeg_quality: int = 80, limits_note: str = "limits: the defaults") -> str:
+    """The report HTML text for one session's results folder.
+
+    thresholds: the limit overrides in force (config and session); three_js: the text of three.min.js (None:
+    the page has no 3D view); image_width / jpeg_quality: the embedded pictures."""
+    from rigbuild.report.viewer import viewer_data, viewer_html
+
     results_dir = Path(results_dir)
-    parts, totals = [], {"pass": 0, "warn": 0, "fail": 0, "missing": 0}
-    nav = []
-    for sec in progress(SECTIONS, "report sections", unit="section"):
-        stages = [sec.stage] if isinstance(sec.stage, str) else list(sec.stage)
-        table, counts = _metric_rows(metrics, stages, thresholds)
-        for k in totals:
-            totals[k] += counts[k]
-        figs = []
-        for pattern in sec.images:
-            for p in sorted(results_dir.glob(pattern))[: sec.max_images]:
-                rel = p.relative_to(results_dir)
-                figs.append(f"<figure>{_img_tag(p)}<figcaption>{html.escape(str(rel))}</figcaption></figure>")
-        verdict = "fail" if counts["fail"] else "warn" if counts["warn"] else "pass" if counts["pass"] else ""
-        badge = f' <span class="badge {verdict}">{verdict}</span>' if verdict else ""
-        nav.append(f'<a href="#{sec.id}">{sec.title}</a>')
-        parts.append(f'<section id="{sec.id}"><h2>{sec.title}{badge}</h2><p>{html.escape(sec.caption)}</p>'
-                     f'{table}<div>{"".join(figs) or "<p><em>No pictures for this stage.</em></p>"}</div></section>')
-    parts.append(f'<section id="timings"><h2>Timings</h2>{_timings(results_dir)}</section>')
-    nav.append('<a href="#timings">Timings</a>')
-    overall = "fail" if totals["fail"] else "warn" if totals["warn"] else "pass"
-    summary = (f'<p class="summary"><span class="badge {overall}">session {overall}</span>'
-               f'<span>{totals["pass"]} pass</span><span>{totals["warn"]} warn</span><span>{totals["fail"]} fail</span>'
-               f'<span>{totals["missing"]} not measured</span></p>')
+    flat = flatten_metrics(metrics)
+    rows, verdict = summarize(flat, thresholds)
+    has_truth = any(r.truth for r in rows)
+    parts = [summary_html(rows, verdict, session, limits_note)]
+    data = viewer_data(results_dir) if three_js is not None else None
+    if data is not None:
+        parts.append('<section id="viewer"><h2>Rig and takes in 3D</h2>' + viewer_html(data, three_js) + "</section>")
+    for s in progress(rows, "report sections", unit="section"):
+        st, pics = s.stage, PICTURES[s.stage.id]
+        parts.append(f'<section id="{st.id}"><h2>{st.title} {_badge(s.status)}</h2><p>{html.escape(pics.caption)}</p>'
+                     f"{pictures_html(results_dir, pics, image_width, jpeg_quality)}"
+                     f"{metrics_html(flat, s, thresholds, has_truth)}</section>")
+    parts.append(f'<section id="timings"><h2>Timings</h2>{timings_html(results_dir)}</section>')
+    nav = " · ".join(f'<a href="#{s.stage.id}">{s.stage.title}</a>' for s in rows) + ' · <a href="#timings">Timings</a>'
     return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>rigbuild report: {html.escape(session)}</title>"
-            f"<style>{_CSS}</style></head><body><h1>rigbuild session report: {html.escape(session)}</h1>"
-            f"<p class='sub'>{' · '.join(nav)}</p>{summary}{''.join(parts)}</body></html>\n")
+            f"<style>{_CSS}</style></head><body>"
+            '<pre id="rb-errors" hidden data-count="0"></pre><pre id="rb-selfcheck" hidden></pre>'
+            f"<p class='top'>rigbuild session report · {nav}</p>{''.join(parts)}</body></html>\n")
+
+
+def limits_note(report_params: Any, session: str) -> str:
+    """Which limits the page applies: the defaults, the config's overrides, the session's."""
+    n_cfg = len(report_params.thresholds)
+    n_ses = len(report_params.sessions.get(session, {}).get("thresholds", {}))
+    parts = ["limits: the defaults (rigbuild/report/thresholds.py)"]
+    if n_cfg:
+        parts.append(f"{n_cfg} from params.report.thresholds")
+    if n_ses:
+        parts.append(f"{n_ses} from params.report.sessions.{session}")
+    return ", ".join(parts)
 
 
 def write_report(metrics_json: str | os.PathLike, results_dir: str | os.PathLike, session: str,
                  report_params: Mapping[str, Any] | None, out_html: str | os.PathLike) -> None:
-    """Rule ``report``: read ``metrics.json``, build the page with ``params.report``'s thresholds, write it."""
+    """Rule ``report``: read ``metrics.json``, build the page with the config's and the session's limits and
+    the installed three.js (InputError with the install command when it is missing), write it."""
+    from rigbuild.assets.web import asset_path
     from rigbuild.io.atomic import write_text
     from rigbuild.io.metrics import read_metrics
     from rigbuild.report.params import from_config
 
-    params = from_config(report_params)
-    write_text(out_html, build_report(results_dir, session, read_metrics(metrics_json), params.thresholds))
+    p = from_config(report_params)
+    three = asset_path("three.min.js").read_text(encoding="utf-8")
+    page = build_report(results_dir, session, read_metrics(metrics_json), p.for_session(session), three_js=three,
+                        image_width=p.image_width, jpeg_quality=p.jpeg_quality, limits_note=limits_note(p, session))
+    write_text(out_html, page)

@@ -2,7 +2,7 @@
 
 A threshold is ``(direction, pass_value, warn_value)``: for ``"max"`` a value <= pass passes, <= warn
 warns, else fails; for ``"min"`` the reverse. The config's ``params.report.thresholds`` overrides
-entries (same keys) and adds new ones. Keys may contain one ``*`` matching a character name.
+entries (same keys) and adds new ones. Keys may contain one ``*`` matching a character or sequence name.
 
 The **headline keys** are the metric keys with a threshold: the report and ``rigbuild eval`` show them first,
 in this table's order, with their limits; ``benchmarks/status.py`` lists them. Tracking's headline errors
@@ -20,6 +20,7 @@ from typing import Any, Mapping
 Rule = tuple[str, float, float]
 
 DEFAULT_THRESHOLDS: dict[str, Rule] = {
+    "calibration.heldout_reprojection_rms_px": ("max", 0.5, 1.0),
     "calibration.rms_px": ("max", 0.2, 0.5),
     "calibration.focal_error_pct": ("max", 0.1, 0.5),
     "calibration.center_error_mm": ("max", 0.3, 1.0),
@@ -27,12 +28,16 @@ DEFAULT_THRESHOLDS: dict[str, Rule] = {
     "reconstruction.median_error_mm": ("max", 0.2, 0.4),
     "reconstruction.p90_error_mm": ("max", 0.6, 1.2),
     "reconstruction.completeness": ("min", 0.95, 0.85),
+    "tracking.sequences.*.median_residual_mm": ("max", 0.5, 1.0),
+    "tracking.lost_frames": ("max", 0, 2),
     "tracking.mean_error_mm": ("max", 0.5, 1.0),
     "tracking.p95_error_mm": ("max", 1.5, 3.0),
     "tracking.end_drift_mm": ("max", 0.3, 0.6),
     "tracking.visible_mean_error_mm": ("max", 0.5, 1.0),
     "tracking.visible_p95_error_mm": ("max", 1.5, 3.0),
     "tracking.visible_end_drift_mm": ("max", 0.3, 0.6),
+    "personalization.residual_final_mm": ("max", 0.5, 1.0),
+    "personalization.heldout_residual_final_mm": ("max", 0.5, 1.0),
     "personalization.residual_reduction": ("min", 0.5, 0.3),
     "personalization.heldout_residual_reduction": ("min", 0.4, 0.2),
     "personalization.heldout_expression_error_reduction": ("min", 0.4, 0.2),
