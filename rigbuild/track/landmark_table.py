@@ -4,7 +4,7 @@
   combination (weights sum to 1) of at most :data:`CANDIDATES` face-mesh points. Derived here, not copied: the ICT
   template (realistic skin, studio lights) is rendered from near-frontal views in a few expressions, the face
   mesh network runs on each image, and for every 68 point (ICT-FaceKit's own Multi-PIE vertex list,
-  ``Rig.landmarks``, projected) the weights over its nearest face-mesh points are the least-squares fit
+  ``Rig.landmarks``, with its README's jawline substitutes for points 0-7 and 9-16, projected) the weights over its nearest face-mesh points are the least-squares fit
   (NNLS) over all images, in units of the outer-eye-corner distance.
 - ``rigbuild/assets/face_landmarks/ict_468.json``: each of the 468 face-mesh points as a point on the ICT
   neutral (triangle, barycentric, nearest vertex) with a reliability. Every render (wider views, same
@@ -40,8 +40,18 @@ EXPRESSIONS = {
 }
 FRONTAL_VIEWS = ((-15, 0), (0, 0), (15, 0), (0, -10), (0, 10))
 WIDE_VIEWS = ((-45, 0), (-30, 10), (-15, -10), (0, 0), (15, 10), (30, -10), (45, 0))
-#: iBUG 68 points whose ICT vertex is a surface point, not the visible contour, off the frontal view
-IBUG_JAW = np.arange(17)
+#: ICT-FaceKit README's jawline vertices that "substitute 0-7 / 9-16 in Multi PIE": they lie on the visible jaw
+#: contour of a frontal view, where 2-D annotators put the jaw points (the default list's cheek points lie
+#: inside the silhouette)
+ICT_JAW_RIGHT = (1278, 1272, 12, 1834, 243, 781, 2199, 1447)
+ICT_JAW_LEFT = (3661, 4390, 3022, 2484, 4036, 2253, 3490, 3496)
+
+
+def ict_ibug68_vertices(rig) -> np.ndarray:
+    """(68,) the ICT vertices of the iBUG 68 points: ``rig.landmarks`` with the README's jawline substitutes."""
+    v = np.asarray(rig.landmarks, np.int64).copy()
+    v[0:8], v[9:17] = ICT_JAW_RIGHT, ICT_JAW_LEFT
+    return v
 
 
 def ibug68_from_mediapipe(points: np.ndarray, table: dict | None = None) -> np.ndarray:
@@ -97,6 +107,7 @@ def _sample_views(rig, head_fn, cameras, landmarker, expressions) -> list[dict]:
 
     base = None
     out = []
+    ibug = ict_ibug68_vertices(rig)
     for name, weights in expressions.items():
         w = np.zeros(rig.n_shapes)
         for k, v in weights.items():
@@ -118,7 +129,7 @@ def _sample_views(rig, head_fn, cameras, landmarker, expressions) -> list[dict]:
             hit = tri >= 0
             f = head.mesh.faces[tri[hit]]
             surf[ii[hit]] = (rig.neutral[f] * res.bary[ij[ii[hit], 1], ij[ii[hit], 0]][:, :, None]).sum(1)
-            out.append({"expr": name, "cam": cam.id, "mesh": P, "ibug": cam.project(V[rig.landmarks]), "surf": surf})
+            out.append({"expr": name, "cam": cam.id, "mesh": P, "ibug": cam.project(V[ibug]), "surf": surf})
     return out
 
 
@@ -155,6 +166,12 @@ def build_table_ict(rig, samples: list[dict]) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Build both tables (``--skip 68`` / ``--skip ict`` leaves one as it is)."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m rigbuild.track.landmark_table", description=__doc__.split("\n")[0])
+    ap.add_argument("--skip", action="append", default=[], choices=["68", "ict"])
+    skip = set(ap.parse_args(argv).skip)
     from rigbuild.io.atomic import write_json
     from rigbuild.io.rigs import read_ict_rig
     from rigbuild.paths import ict_dir
@@ -168,21 +185,24 @@ def main(argv: list[str] | None = None) -> int:
     frontal = sphere_cameras(centre, *zip(*FRONTAL_VIEWS))
     wide = sphere_cameras(centre, *zip(*WIDE_VIEWS))
     head_fn = lambda V: template_head(rig, V)  # noqa: E731
-    s68 = _sample_views(rig, head_fn, frontal, landmarker, EXPRESSIONS)
-    t68 = build_table_68(s68)
-    t68["source"] = ("python -m rigbuild.track.landmark_table: NNLS fit over renders of the ICT template "
-                     f"({len(s68)} images, views {FRONTAL_VIEWS}, expressions {list(EXPRESSIONS)}) to ICT-FaceKit's "
-                     "Multi-PIE 68 vertex list")
-    sall = _sample_views(rig, head_fn, wide, landmarker, EXPRESSIONS)
-    tict = build_table_ict(rig, sall)
-    tict["source"] = (f"python -m rigbuild.track.landmark_table: {len(sall)} renders of the ICT template, views "
-                      f"{WIDE_VIEWS}, expressions {list(EXPRESSIONS)}")
     ASSET_DIR.mkdir(parents=True, exist_ok=True)
-    write_json(TABLE_68, t68, indent=None)
-    write_json(TABLE_ICT, tict, indent=None)
-    e = np.asarray(t68["fit_error_iod"])
-    print(f"68 table: mean fit error {e.mean():.4f} IOD (max {e.max():.4f}); ICT table: spread median "
-          f"{np.median(tict['spread_mm']):.2f} mm, 90th pct {np.percentile(tict['spread_mm'], 90):.2f} mm")
+    if "ict" not in skip:
+        sall = _sample_views(rig, head_fn, wide, landmarker, EXPRESSIONS)
+        tict = build_table_ict(rig, sall)
+        tict["source"] = (f"python -m rigbuild.track.landmark_table: {len(sall)} renders of the ICT template, "
+                          f"views {WIDE_VIEWS}, expressions {list(EXPRESSIONS)}")
+        write_json(TABLE_ICT, tict, indent=None)
+        print(f"ICT table: spread median {np.median(tict['spread_mm']):.2f} mm, "
+              f"90th pct {np.percentile(tict['spread_mm'], 90):.2f} mm")
+    if "68" not in skip:
+        s68 = _sample_views(rig, head_fn, frontal, landmarker, EXPRESSIONS)
+        t68 = build_table_68(s68)
+        t68["source"] = ("python -m rigbuild.track.landmark_table: NNLS fit over renders of the ICT template "
+                         f"({len(s68)} images, views {FRONTAL_VIEWS}, expressions {list(EXPRESSIONS)}) to "
+                         "ICT-FaceKit's Multi-PIE 68 vertex list with the README's jawline substitutes")
+        write_json(TABLE_68, t68, indent=None)
+        e = np.asarray(t68["fit_error_iod"])
+        print(f"68 table: mean fit error {e.mean():.4f} IOD (max {e.max():.4f})")
     return 0
 
 
