@@ -42,7 +42,7 @@ def aruco_dictionaries() -> list[str]:
 
     names = [n for n in dir(cv2.aruco) if n.startswith("DICT_") and isinstance(getattr(cv2.aruco, n), int)]
     seen, out = set(), []
-    for n in sorted(names, key=lambda n: (n.upper(), n != n.upper())):
+    for n in sorted(names, key=lambda n: (n.upper(), n == n.upper())):  # OpenCV docs spelling: 36h11
         if n.upper() not in seen:
             seen.add(n.upper())
             out.append(n)

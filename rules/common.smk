@@ -36,9 +36,18 @@ def validate_stage_params():
 
 validate_stage_params()
 
-# run_sessions (optional): which of the configured sessions this run builds (default: all of them);
-# config/config.yaml is always loaded first, so a tier's config names its own sessions here.
-SESSIONS = list(config.get("run_sessions") or config["sessions"])
+
+
+def configfile_sessions():
+    """Sessions named by the --configfile files (and --config) of this run: config/config.yaml is always
+    loaded first, and a technician's config naming its own sessions builds only those, not the demo."""
+    given = getattr(workflow.config_settings, "overwrite_config", None) or {}
+    return list(given.get("sessions") or {})
+
+
+# run_sessions (optional): which of the configured sessions this run builds; default: the sessions of the
+# --configfile files, or every configured session when none names any (plain `snakemake`: the demo).
+SESSIONS = list(config.get("run_sessions") or configfile_sessions() or config["sessions"])
 _unknown_sessions = [s for s in SESSIONS if s not in config["sessions"]]
 if _unknown_sessions:
     raise InputError(f"field 'run_sessions': unknown sessions {_unknown_sessions}", path="config",
@@ -168,9 +177,16 @@ def performances(session):
     return [p.name for p in session_spec(session).performances]
 
 
+def calibration_only(session):
+    """A session without ROM sequences and performances: only calibrated (and reported)."""
+    return session_spec(session).calibration_only
+
+
 def stage_targets(session):
     """Every stage output of a session the report shows (the metrics rule gathers the numbers)."""
     targets = [results(session, "calib", "cameras.json")]
+    if calibration_only(session):
+        return targets
     targets += [results(session, "reconstruct", seq, "recon_summary.json") for seq in sequences(session)]
     targets += [results(session, "track", "track_summary.json"), results(session, "personalize", "rig.npz")]
     for perf in performances(session):
@@ -183,7 +199,9 @@ def stage_targets(session):
 def metric_files(session):
     """Every metrics fragment of a session, stage by stage (ground-truth evaluation for synthetic sessions)."""
     files = []
-    for stage in ("calibrate", "reconstruct", "track", "personalize", "retarget"):
+    stages = ("calibrate",) if calibration_only(session) else ("calibrate", "reconstruct", "track", "personalize",
+                                                              "retarget")
+    for stage in stages:
         files += globals()[f"{stage}_metric_files"](session)
         if is_synthetic(session):
             files += globals()[f"eval_{stage}_metric_files"](session)

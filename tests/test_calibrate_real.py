@@ -27,7 +27,7 @@ def stereo(real_data):
     d = real_data / "opencv-chessboard-stereo"
     if not d.is_dir():
         pytest.skip("opencv-chessboard-stereo absent")
-    return {side: {n: detect_board(read_gray(d / f"{side}{n}.jpg", (640, 480)), CHESS) for n in LEFT}
+    return {side: {n: detect_board(read_gray(d / f"{side}{n}.jpg", (640, 480)), CHESS, subpix_window=5) for n in LEFT}
             for side in ("left", "right")}
 
 

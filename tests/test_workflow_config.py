@@ -15,12 +15,12 @@ from rigbuild.paths import PROJECT_ROOT
 SNAKEMAKE = str(Path(sys.executable).with_name("snakemake"))
 
 
-def _dry_run(tmp_path: Path, config: dict) -> subprocess.CompletedProcess:
+def _dry_run(tmp_path: Path, config: dict, *extra: str) -> subprocess.CompletedProcess:
     cfg = tmp_path / "config.yaml"
     cfg.write_text(yaml.safe_dump(config))
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
     r = subprocess.run([SNAKEMAKE, "-n", "--configfile", str(cfg), "--directory", str(tmp_path),
-                           "--snakefile", str(PROJECT_ROOT / "Snakefile"), "--cores", "1"],
+                           "--snakefile", str(PROJECT_ROOT / "Snakefile"), "--cores", "1", *extra],
                           capture_output=True, text=True, env=env, timeout=300)
     r.out = r.stdout + r.stderr  # snakemake prints DAG-start errors to stdout
     return r
@@ -118,3 +118,44 @@ def test_bad_realism_keys_fail_at_dag_start_with_the_key_and_the_fix(tmp_path, s
     assert r.returncode != 0
     assert key in r.out and fix in r.out, r.out[-2000:]
     assert not (tmp_path / "s").exists()
+
+
+def _calibration_only_session(folder: Path) -> Path:
+    """A session of calibration images only (no rom, no performances), JPEG, as a technician has it."""
+    folder = _real_session(folder, rom=[])
+    for cam in ("a", "b"):
+        (folder / "calib" / cam).mkdir(parents=True)
+        for k in range(3):
+            (folder / "calib" / cam / f"{k}.jpg").write_bytes(b"\xff\xd8 not decoded by a dry run \xff\xd9")
+    return folder
+
+
+def test_calibration_only_session_builds_its_dag(tmp_path):
+    """Issue 21 finding 2: calibration images only; `--until calibrate` and a full run both plan."""
+    folder = _calibration_only_session(tmp_path / "s")
+    cfg = {"sessions": {"real": {"path": str(folder)}}}
+    r = _dry_run(tmp_path, cfg, "--until", "calibrate")
+    assert r.returncode == 0, r.out[-3000:]
+    assert "rule calibrate:" in r.stdout and "track_neutral" not in r.out and "calib/a/2.jpg" in r.stdout
+    r = _dry_run(tmp_path, cfg)
+    assert r.returncode == 0, r.out[-3000:]
+    assert "results/real/report.html" in r.stdout and "results/real/calib/cameras.json" in r.stdout
+    assert "reconstruct" not in r.stdout and "track" not in r.stdout
+
+
+def test_a_technicians_config_plans_only_its_sessions(tmp_path):
+    """Issue 21 finding 3: config/config.yaml is loaded first, but a --configfile naming its own sessions
+    builds only those (no demo session). Snakemake reads config/config.yaml from the working directory:
+    a copy there stands for the project's."""
+    (tmp_path / "config").mkdir()
+    (tmp_path / "config" / "config.yaml").write_text((PROJECT_ROOT / "config" / "config.yaml").read_text())
+    folder = _real_session(tmp_path / "s")
+    for cam in ("a", "b"):
+        for sub, names in (("calib", ["0.png", "1.png"]), ("rom/s0", [f"{f:06d}.png" for f in range(4)])):
+            (folder / sub / cam).mkdir(parents=True)
+            for n in names:
+                (folder / sub / cam / n).write_bytes(b"not decoded by a dry run")
+    r = _dry_run(tmp_path, {"sessions": {"real": {"path": str(folder)}}})
+    assert r.returncode == 0, r.out[-3000:]
+    assert "results/real/report.html" in r.stdout and "rule track_neutral:" in r.stdout
+    assert "demo" not in r.stdout and "synth_session" not in r.stdout

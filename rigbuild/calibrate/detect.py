@@ -100,20 +100,41 @@ def detect_charuco(gray: np.ndarray, board: BoardSpec, subpix_window: int = 0) -
     return Detection(ch_ids.reshape(-1)[order], corners[order])
 
 
-def detect_chessboard(gray: np.ndarray, board: BoardSpec, subpix_window: int = 5) -> Detection:
+def chessboard_subpix_window(corners: np.ndarray, nx: int, ny: int) -> int:
+    """Half-window (px) for ``cornerSubPix`` from the corner spacing: a fifth of the smallest spacing
+    between grid neighbours, clipped to 5..21 px (the window must stay inside the corner's four squares;
+    a fixed 5 px leaves 100 px squares of a 1920 px photo refined at 0.6 px RMS instead of 0.2 px)."""
+    g = corners.reshape(ny, nx, 2)
+    spacing = min(float(np.median(np.linalg.norm(np.diff(g, axis=1), axis=2))) if nx > 1 else np.inf,
+                  float(np.median(np.linalg.norm(np.diff(g, axis=0), axis=2))) if ny > 1 else np.inf)
+    return int(np.clip(round(0.2 * spacing), 5, 21))
+
+
+def detect_chessboard(gray: np.ndarray, board: BoardSpec, subpix_window: int | None = 5) -> Detection:
     """Chessboard inner corners (all or none), refined with ``cornerSubPix``.
 
     Follows OpenCV's calibration test recipe: ``findChessboardCorners`` with default flags, then
-    ``cornerSubPix`` with a ``(subpix_window, subpix_window)`` half-window and criteria EPS+COUNT 30, 0.1.
-    A chessboard is symmetric under a 180 degree turn, so the corner order is made canonical: corner 0 is
+    ``cornerSubPix`` with a ``(subpix_window, subpix_window)`` half-window and criteria EPS+COUNT 30, 0.1
+    (``subpix_window`` None: :func:`chessboard_subpix_window` from the corner spacing).
+    When that finds nothing, ``findChessboardCornersSB`` (exhaustive, accurate: its own subpixel corners).
+    The board's printed side faces the camera, so the order is made right-handed in the image (a mirrored
+    numbering is flipped row by row); a chessboard is symmetric under a 180 degree turn, so corner 0 is then
     the one nearer the image's top-left (cameras of a rig must be roughly upright; ChArUco has no such limit).
     """
     nx, ny = board.squares_x - 1, board.squares_y - 1
     found, corners = cv2.findChessboardCorners(gray, (nx, ny))
+    if found:
+        w = chessboard_subpix_window(corners.reshape(-1, 2), nx, ny) if subpix_window is None else subpix_window
+        corners = cv2.cornerSubPix(gray, corners, (w, w), (-1, -1), _SUBPIX_CRITERIA)
+    else:
+        found, corners = cv2.findChessboardCornersSB(gray, (nx, ny), flags=cv2.CALIB_CB_EXHAUSTIVE
+                                                     | cv2.CALIB_CB_ACCURACY)
     if not found:
         return Detection(np.zeros(0, np.int64), np.zeros((0, 2)))
-    corners = cv2.cornerSubPix(gray, corners, (subpix_window, subpix_window), (-1, -1), _SUBPIX_CRITERIA)
     corners = corners.reshape(-1, 2).astype(np.float64)
+    a, b = corners[1 % corners.shape[0]] - corners[0], corners[min(nx, corners.shape[0] - 1)] - corners[0]
+    if nx > 1 and ny > 1 and a[0] * b[1] - a[1] * b[0] < 0:
+        corners = corners.reshape(ny, nx, 2)[:, ::-1].reshape(-1, 2).copy()
     if corners[0].sum() > corners[-1].sum():
         corners = corners[::-1].copy()
     return Detection(np.arange(nx * ny), corners)
@@ -123,7 +144,7 @@ def _detect_polarity(gray: np.ndarray, board: BoardSpec, subpix_window: int | No
     if board.type == "charuco":
         return detect_charuco(gray, board, 0 if subpix_window is None else subpix_window)
     if board.type == "chessboard":
-        return detect_chessboard(gray, board, 5 if subpix_window is None else subpix_window)
+        return detect_chessboard(gray, board, subpix_window)
     raise InputError(f"unknown board type '{board.type}'", fix="use 'charuco' or 'chessboard' in session.yaml board.type")
 
 

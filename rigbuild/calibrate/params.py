@@ -45,7 +45,8 @@ class CalibrationOptions:
     max_iterations : iteration cap of the adjustment (Levenberg-Marquardt steps); it stops earlier at
         ``tolerance`` (relative cost decrease or relative step); not converged by the cap = a gate failure.
     subpix_window : corner refinement half-window, px (None = the detector's default per board type:
-        0 = none for ChArUco, 5 for chessboards; see :func:`rigbuild.calibrate.detect.detect_board`).
+        0 = none for ChArUco (OpenCV's own refinement), a fifth of the corner spacing (5..21 px) for
+        chessboards; see :func:`rigbuild.calibrate.detect.detect_board`).
     heldout_every : every n-th board pose (in view-key order, the n-th, 2n-th, ...) is left out of a second
         fit whose cameras triangulate and reproject its corners (``heldout_reprojection_rms_px``); 0 = off.
         The delivered calibration uses every pose.

@@ -123,7 +123,7 @@ def plausibility_flags(cameras: Sequence, board_poses: Mapping[str, int], min_bo
         if not (w / 3 <= K[0, 2] <= 2 * w / 3 and h / 3 <= K[1, 2] <= 2 * h / 3):
             flags.append(f"principal point ({K[0, 2]:.0f}, {K[1, 2]:.0f}) px outside the central third of the "
                          f"{w}x{h} image")
-        ratio_pct = 100 * abs(K[0, 0] / K[1, 1] - 1)
+        ratio_pct = 100 * (max(K[0, 0], K[1, 1]) / min(K[0, 0], K[1, 1]) - 1)
         if ratio_pct > max_aspect_pct:
             flags.append(f"fx {K[0, 0]:.0f} and fy {K[1, 1]:.0f} px differ by {ratio_pct:.1f} % (> {max_aspect_pct:g} %)")
         if distortion_folds(K, cam.dist, w, h):

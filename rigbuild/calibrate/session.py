@@ -113,7 +113,7 @@ def calibrate_session(session_dir: str | os.PathLike, params: CalibrationOptions
     if count_corners(detections) == 0:
         raise no_board_error(spec, images)
     known = known_intrinsics(spec, params)
-    names = {c: {v: str(p.relative_to(spec.root)) if p.is_relative_to(spec.root) else str(p)
+    names = {c: {v: str(p.relative_to(spec.root)) if p.is_relative_to(spec.root) else f"{c}/{p.name}"
                  for v, p in views.items()} for c, views in images.items()}
     result = calibrate_rig(detections, spec.board, (spec.width, spec.height), params, image_names=names,
                            known=known, raise_gate=False)
