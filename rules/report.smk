@@ -29,6 +29,8 @@ rule report:
     output:
         html=report("results/{session}/report.html", category="Report",
                     caption="../workflow/report/session_report.rst"),
+        # the 3D view's data and three.js when the page would exceed params.report.inline_limit_mb inline
+        assets=directory("results/{session}/report_files"),
     params:
         results_dir=lambda wc: results(wc.session),
         report=lambda wc: config["params"]["report"],

@@ -182,21 +182,22 @@ def timings_html(results_dir: Path) -> str:
 
 def build_report(results_dir: str | os.PathLike, session: str, metrics: Mapping[str, Any],
                  thresholds: Mapping | None = None, *, three_js: str | None = None, image_width: int = 560,
-                 jpeg_quality: int = 80, limits_note: str = "limits: the defaults") -> str:
+                 jpeg_quality: int = 80, limits_note: str = "limits: the defaults",
+                 assets: dict[str, str] | None = None, inline_limit_mb: float = 5.0) -> str:
     """The report HTML text for one session's results folder.
 
     thresholds: the limit overrides in force (config and session); three_js: the text of three.min.js (None:
-    the page has no 3D view); image_width / jpeg_quality: the embedded pictures."""
+    the page has no 3D view); image_width / jpeg_quality: the embedded pictures; assets: when given and the
+    page would exceed ``inline_limit_mb`` MB, it receives the 3D view's files (name -> text) for the folder
+    beside the page (:data:`rigbuild.report.viewer.ASSETS_FOLDER`) and the page loads them from there."""
     from rigbuild.report.viewer import viewer_data, viewer_html
 
     results_dir = Path(results_dir)
     flat = flatten_metrics(metrics)
     rows, verdict = summarize(flat, thresholds)
     has_truth = any(r.truth for r in rows)
-    parts = [summary_html(rows, verdict, session, limits_note)]
+    parts = [summary_html(rows, verdict, session, limits_note), ""]
     data = viewer_data(results_dir) if three_js is not None else None
-    if data is not None:
-        parts.append('<section id="viewer"><h2>Rig and takes in 3D</h2>' + viewer_html(data, three_js) + "</section>")
     for s in progress(rows, "report sections", unit="section"):
         st, pics = s.stage, PICTURES[s.stage.id]
         parts.append(f'<section id="{st.id}"><h2>{st.title} {_badge(s.status)}</h2><p>{html.escape(pics.caption)}</p>'
@@ -204,10 +205,19 @@ def build_report(results_dir: str | os.PathLike, session: str, metrics: Mapping[
                      f"{metrics_html(flat, s, thresholds, has_truth)}</section>")
     parts.append(f'<section id="timings"><h2>Timings</h2>{timings_html(results_dir)}</section>')
     nav = " · ".join(f'<a href="#{s.stage.id}">{s.stage.title}</a>' for s in rows) + ' · <a href="#timings">Timings</a>'
-    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>rigbuild report: {html.escape(session)}</title>"
-            f"<style>{_CSS}</style></head><body>"
-            '<pre id="rb-errors" hidden data-count="0"></pre><pre id="rb-selfcheck" hidden></pre>'
-            f"<p class='top'>rigbuild session report · {nav}</p>{''.join(parts)}</body></html>\n")
+
+    def page(viewer: str) -> str:
+        parts[1] = f'<section id="viewer"><h2>Rig and takes in 3D</h2>{viewer}</section>' if viewer else ""
+        return (f"<!DOCTYPE html><html><head><meta charset='utf-8'>"
+                f"<title>rigbuild session report: {html.escape(session)}</title><style>{_CSS}</style></head><body>"
+                '<pre id="rb-errors" hidden data-count="0"></pre><pre id="rb-selfcheck" hidden></pre>'
+                f"<script>{(ASSETS / 'errors.js').read_text(encoding='utf-8')}</script>"
+                f"<p class='top'>rigbuild session report · {nav}</p>{''.join(parts)}</body></html>\n")
+
+    text = page(viewer_html(data, three_js) if data is not None else "")
+    if data is not None and assets is not None and len(text.encode("utf-8")) > inline_limit_mb * 1e6:
+        text = page(viewer_html(data, three_js, assets))
+    return text
 
 
 def limits_note(report_params: Any, session: str) -> str:
@@ -223,16 +233,29 @@ def limits_note(report_params: Any, session: str) -> str:
 
 
 def write_report(metrics_json: str | os.PathLike, results_dir: str | os.PathLike, session: str,
-                 report_params: Mapping[str, Any] | None, out_html: str | os.PathLike) -> None:
+                 report_params: Mapping[str, Any] | None, out_html: str | os.PathLike,
+                 assets_dir: str | os.PathLike | None = None) -> None:
     """Rule ``report``: read ``metrics.json``, build the page with the config's and the session's limits and
-    the installed three.js (InputError with the install command when it is missing), write it."""
+    the installed three.js (InputError with the install command when it is missing), write it, and the 3D
+    view's files into ``assets_dir`` (default ``report_files/`` beside the page) when they do not fit inline
+    (else a README saying so: the folder is always there, a declared output)."""
     from rigbuild.assets.web import asset_path
     from rigbuild.io.atomic import write_text
     from rigbuild.io.metrics import read_metrics
     from rigbuild.report.params import from_config
+    from rigbuild.report.viewer import ASSETS_FOLDER
 
     p = from_config(report_params)
     three = asset_path("three.min.js").read_text(encoding="utf-8")
+    assets: dict[str, str] = {}
     page = build_report(results_dir, session, read_metrics(metrics_json), p.for_session(session), three_js=three,
-                        image_width=p.image_width, jpeg_quality=p.jpeg_quality, limits_note=limits_note(p, session))
+                        image_width=p.image_width, jpeg_quality=p.jpeg_quality, limits_note=limits_note(p, session),
+                        assets=assets, inline_limit_mb=p.inline_limit_mb)
+    folder = Path(assets_dir) if assets_dir is not None else Path(out_html).parent / ASSETS_FOLDER
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, text in assets.items():
+        write_text(folder / name, text)
+    if not assets:
+        write_text(folder / "README.txt", f"{Path(out_html).name} is self-contained: its 3D view fits inline "
+                   f"(under params.report.inline_limit_mb = {p.inline_limit_mb:g} MB), so this folder holds nothing else.\n")
     write_text(out_html, page)

@@ -22,12 +22,14 @@ class ReportParams:
     :data:`rigbuild.report.thresholds.DEFAULT_THRESHOLDS`.
     sessions : session name -> ``{thresholds: {...}}``, that session's limits over ``thresholds``.
     image_width : width in px of the pictures embedded as JPEG (downscaled, never upscaled).
-    jpeg_quality : their JPEG quality (1-100)."""
+    jpeg_quality : their JPEG quality (1-100).
+    inline_limit_mb : above this page size the 3D view's data and three.js go to ``report_files/`` beside it."""
 
     thresholds: dict[str, Any] = field(default_factory=dict)
     sessions: dict[str, Any] = field(default_factory=dict)
     image_width: int = 560
     jpeg_quality: int = 80
+    inline_limit_mb: float = 5.0
 
     def for_session(self, session: str) -> dict[str, tuple]:
         """The overrides for ``session``: the config's thresholds with the session's own over them."""
@@ -64,4 +66,7 @@ def from_config(values: Mapping[str, Any] | None) -> ReportParams:
         raise InputError(f"params.report.image_width is {p.image_width!r}", path="config", fix="give a width >= 64 px")
     if not (isinstance(p.jpeg_quality, int) and 1 <= p.jpeg_quality <= 100):
         raise InputError(f"params.report.jpeg_quality is {p.jpeg_quality!r}", path="config", fix="give 1-100")
+    if not (isinstance(p.inline_limit_mb, (int, float)) and p.inline_limit_mb > 0):
+        raise InputError(f"params.report.inline_limit_mb is {p.inline_limit_mb!r}", path="config",
+                         fix="give a size in MB > 0")
     return p

@@ -1,22 +1,12 @@
 // The report's 3D view (rigbuild/report/viewer.py packs the data): a rig with one slider per shape, and
 // playback of each retargeted take on its character. Vertices are blended on the CPU,
 // v = neutral + sum_k w_k delta_k over each shape's sparse deltas, and drawn with three.js (global THREE).
-// Errors of the page go to #rb-errors; with the URL hash #selfcheck the page moves one slider and one take
+// Errors of the page go to #rb-errors (errors.js); with ?selfcheck (or #selfcheck) in the URL the page moves one slider and one take
 // frame itself and writes what moved to #rb-selfcheck (the report's Chromium test reads both).
 (function () {
   "use strict";
-  var errors = [];
-  var errBox = document.getElementById("rb-errors");
-  function note(msg) {
-    errors.push(String(msg));
-    if (errBox) { errBox.textContent = errors.join("\n"); errBox.setAttribute("data-count", errors.length); }
-  }
-  window.addEventListener("error", function (e) { note("error: " + e.message + " (" + e.lineno + ")"); });
-  var consoleError = console.error;
-  console.error = function () {
-    note("console.error: " + Array.prototype.join.call(arguments, " "));
-    return consoleError.apply(console, arguments);
-  };
+  var errors = window.rbErrors || [];
+  var note = window.rbNote || function (msg) { errors.push(String(msg)); };
 
   function bytes(b64) {
     var s = atob(b64), out = new Uint8Array(s.length);
@@ -25,7 +15,8 @@
   }
   function typed(b64, Type) { return new Type(bytes(b64)); }
 
-  var data = JSON.parse(document.getElementById("rb-viewer-data").textContent);
+  var inline = document.getElementById("rb-viewer-data");
+  var data = window.RB_VIEWER_DATA || JSON.parse(inline.textContent);  // report_files/viewer-data.js, or inline
   var topo = {};
   var models = {};
 
@@ -127,12 +118,15 @@
     }
     dirty = true;
   }
+  function render() {
+    group.rotation.set(pitch, yaw, 0);
+    camera.position.set(0, 0, dist);
+    camera.lookAt(0, 0, 0);
+    renderer.render(scene, camera);
+  }
   function draw() {
     if (renderer && dirty && mesh) {
-      group.rotation.set(pitch, yaw, 0);
-      camera.position.set(0, 0, dist);
-      camera.lookAt(0, 0, 0);
-      renderer.render(scene, camera);
+      render();
       dirty = false;
     }
     requestAnimationFrame(draw);
@@ -208,6 +202,7 @@
   }
   function choose(value) {
     playing = false; playBtn.textContent = "play";
+    select.value = value;
     var parts = value.split(":");
     if (parts[0] === "take") {
       take = data.takes[+parts[1]];
@@ -270,11 +265,13 @@
       out.take = { label: take.label, frame: fBest, max_offset_mm: dmax };
     }
     if (renderer) {
-      renderer.render(scene, camera);
+      render();
       var px = new Uint8Array(4), ctx = renderer.getContext();
       ctx.readPixels(ctx.drawingBufferWidth >> 1, ctx.drawingBufferHeight >> 1, 1, 1, ctx.RGBA, ctx.UNSIGNED_BYTE, px);
       out.centre_pixel = Array.from(px);
     }
+    var table = document.querySelector("#summary table");
+    out.summary_bottom_px = table ? table.getBoundingClientRect().bottom + window.scrollY : null;
     out.errors = errors.length;
     var el = document.getElementById("rb-selfcheck");
     el.textContent = JSON.stringify(out);

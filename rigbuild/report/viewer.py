@@ -24,6 +24,9 @@ from rigbuild.io.rigs import read_rig_npz
 from rigbuild.rig import UNIT_TO_MM, Rig
 
 VIEWER_JS = Path(__file__).with_name("viewer.js")
+#: the folder beside report.html holding the viewer's files when the page would be too large inline
+ASSETS_FOLDER = "report_files"
+DATA_JS, THREE_JS = "viewer-data.js", "three.min.js"
 
 
 @dataclass
@@ -95,7 +98,11 @@ def b64(arr: np.ndarray) -> str:
 def pack_take(csv_path: Path, model_id: str, label: str) -> dict:
     """One retargeted take: weights (F, K) int16 with an offset and scale, the shape names, fps."""
     w, names, times = read_weight_curves_csv(csv_path)
-    fps = float(1.0 / np.median(np.diff(times))) if times.size > 1 else 30.0
+    beside = csv_path.with_suffix(".json")
+    if beside.exists():  # weights.json carries the take's exact rate
+        fps = float(json.loads(beside.read_text(encoding="utf-8"))["fps"])
+    else:  # the CSV's times are rounded to 1 us: the rate over the whole take
+        fps = float((times.size - 1) / (times[-1] - times[0])) if times.size > 1 else 30.0
     lo, hi = (float(w.min()), float(w.max())) if w.size else (0.0, 0.0)
     scale = max(hi - lo, 1e-9) / 65534.0
     q = np.round((w - lo) / scale - 32767).astype(np.int16)
@@ -104,12 +111,16 @@ def pack_take(csv_path: Path, model_id: str, label: str) -> dict:
 
 
 def take_files(results_dir: Path) -> list[tuple[Path, str, str, str]]:
-    """(weights.csv, method, performance, character) of every retargeted take, sorted."""
+    """(weights.csv, method, performance, character) of every retargeted take, by performance, character and
+    method in the pipeline's order (:data:`rigbuild.retarget.methods.PIPELINE_METHODS`; others after)."""
+    from rigbuild.retarget.methods import PIPELINE_METHODS
+
     out = []
-    for p in sorted(results_dir.glob("retarget/*/*/*/weights.csv")):
+    for p in results_dir.glob("retarget/*/*/*/weights.csv"):
         method, perf, character = p.parts[-4:-1]
         out.append((p, method, perf, character))
-    return out
+    order = {m: i for i, m in enumerate(PIPELINE_METHODS)}
+    return sorted(out, key=lambda r: (r[2], r[3], order.get(r[1], len(order)), r[1]))
 
 
 def viewer_data(results_dir: str | os.PathLike, packer: Packer | None = None) -> dict[str, Any] | None:
@@ -136,13 +147,23 @@ def viewer_data(results_dir: str | os.PathLike, packer: Packer | None = None) ->
             "topologies": packer.topologies}
 
 
-def viewer_html(data: dict[str, Any], three_js: str) -> str:
-    """The viewer's markup, its data block and its scripts (three.js and viewer.js, classic and inline)."""
-    blob = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
-    return ('<div id="rb-viewer"><div id="rb-canvas"><p class="hint">drag: turn · wheel: zoom</p></div>'
-            '<div id="rb-controls"><label>show <select id="rb-select"></select></label>'
-            '<div id="rb-play"><button id="rb-playbtn" type="button">play</button> '
-            '<input id="rb-frame" type="range" min="0" max="0" value="0"> <span id="rb-frametext"></span></div>'
-            '<div id="rb-sliders"></div></div></div>'
-            f'<script type="application/json" id="rb-viewer-data">{blob}</script>'
-            f"<script>{three_js}</script><script>{VIEWER_JS.read_text(encoding='utf-8')}</script>")
+def viewer_html(data: dict[str, Any], three_js: str, assets: dict[str, str] | None = None,
+                folder: str = ASSETS_FOLDER) -> str:
+    """The viewer's markup, its data and its scripts (three.js, viewer.js): inline, or with ``assets`` (a dict
+    that receives file name -> text) the data and three.js as classic scripts in ``folder`` beside the page
+    (``<script src>`` loads from ``file://`` too)."""
+    blob = json.dumps(data, separators=(",", ":"))
+    markup = ('<div id="rb-viewer"><div id="rb-canvas"><p class="hint">drag: turn · wheel: zoom</p></div>'
+              '<div id="rb-controls"><label>show <select id="rb-select"></select></label>'
+              '<div id="rb-play"><button id="rb-playbtn" type="button">play</button> '
+              '<input id="rb-frame" type="range" min="0" max="0" value="0"> <span id="rb-frametext"></span></div>'
+              '<div id="rb-sliders"></div></div></div>')
+    viewer = f"<script>{VIEWER_JS.read_text(encoding='utf-8')}</script>"
+    if assets is None:
+        safe = blob.replace("</", "<\\/")
+        return (markup + f'<script type="application/json" id="rb-viewer-data">{safe}</script>'
+                f"<script>{three_js}</script>" + viewer)
+    assets[DATA_JS] = f"window.RB_VIEWER_DATA = {blob};\n"
+    assets[THREE_JS] = three_js
+    return (markup + f'<script src="{folder}/{THREE_JS}"></script><script src="{folder}/{DATA_JS}"></script>'
+            + viewer)
