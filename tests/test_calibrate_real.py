@@ -68,3 +68,84 @@ def test_charuco_tutorial_all_corners_and_rms(real_data):
     res = calibrate_rig({"cam": dets}, CHARUCO_TUTORIAL, (640, 480), CalibrationOptions(min_images=4, max_rms_px=0.3))
     assert res.rms_px < 0.3
     assert abs(res.cameras[0].K[0, 0] - intr.K[0, 0]) / intr.K[0, 0] < 0.01
+
+
+def _qualisys_intrinsics(path) -> dict:
+    """camera serial -> (fx, fy, cx, cy) px of the Qualisys reference (Calib.qca.txt stores 1/64 px)."""
+    import xml.etree.ElementTree as ET
+
+    out = {}
+    for cam in ET.parse(path).getroot().iter("camera"):
+        a = cam.find("intrinsic").attrib
+        out[cam.attrib["serial"]] = np.array([float(a[k]) / 64 for k in ("focalLengthU", "focalLengthV",
+                                                                          "centerPointU", "centerPointV")])
+    return out
+
+
+@pytest.mark.data
+def test_sleap_anipose_calibrates_as_a_calibration_only_session(real_data, tmp_path):
+    """Issue 21 acceptance: the 4-camera sleap-anipose ChArUco recording, described by
+    config/calibration-only/sleap-charuco/session.yaml (its own folders and file names, JPEG), calibrated
+    with config/sleap-charuco.yaml's parameters: every 4th frame held out, triangulated and reprojected."""
+    import yaml
+
+    from rigbuild.calibrate.stage import run_calibrate
+    from rigbuild.paths import PROJECT_ROOT
+
+    if not (real_data / "sleap-anipose-charuco-4cam").is_dir():
+        pytest.skip("sleap-anipose-charuco-4cam absent")
+    params = yaml.safe_load((PROJECT_ROOT / "config" / "sleap-charuco.yaml").read_text())["params"]["calibrate"]
+    m = run_calibrate(PROJECT_ROOT / "config" / "calibration-only" / "sleap-charuco", tmp_path / "calib", params)
+    print({k: m[k] for k in ("rms_px", "camera_rms_px", "heldout_reprojection_rms_px", "heldout_camera_rms_px",
+                             "heldout_scale_deviation_pct", "plausibility_flags", "seconds")})
+    # measured: fitted 0.283 px (0.16-0.47 per camera), held out 0.100 px (5 poses, 350 corners), scale +0.003 %
+    assert m["status"] == "pass" and m["bundle_converged"] and m["n_images_used"] == 84
+    assert m["heldout_n_board_poses"] == 5
+    assert m["heldout_reprojection_rms_px"] <= 0.6
+    assert abs(m["heldout_scale_deviation_pct"]) <= 0.2
+
+
+@pytest.fixture(scope="module")
+def pose2sim_intrinsics(real_data, tmp_path_factory):
+    """Intrinsics of the 4 Pose2Sim cameras from their own checkerboard photos (calib_intrinsics), next to
+    the Qualisys reference."""
+    import yaml
+
+    from rigbuild.calibrate.params import from_config
+    from rigbuild.calibrate.session import known_intrinsics
+    from rigbuild.session import read_session
+
+    d = real_data / "pose2sim-calibration-4cam"
+    if not d.is_dir():
+        pytest.skip("pose2sim-calibration-4cam absent")
+    folder = tmp_path_factory.mktemp("pose2sim")
+    (folder / "session.yaml").write_text(yaml.safe_dump({
+        "name": "pose2sim", "cameras": ["cam01", "cam02", "cam03", "cam04"], "image_size": [1088, 1920],
+        "board": {"type": "chessboard", "squares_x": 5, "squares_y": 8, "square_size_mm": 60.0},
+        "calibration": {"intrinsics_images": "{data}/pose2sim-calibration-4cam/intrinsics/int_{cam}_img"}}))
+    est = known_intrinsics(read_session(folder), from_config({}))
+    ref = _qualisys_intrinsics(d / "Calib.qca.txt")
+    got = {c: np.array([k.K[0, 0], k.K[1, 1], k.K[0, 2], k.K[1, 2]]) for c, k in est.items()}
+    print({c: (np.round(100 * (got[c][:2] / ref[c][:2] - 1), 2), np.round(got[c][2:] - ref[c][2:], 1)) for c in ref})
+    return est, got, ref
+
+
+@pytest.mark.data
+def test_pose2sim_focal_lengths_from_separate_checkerboard_photos(pose2sim_intrinsics):
+    """Issue 21 acceptance: focal lengths within 0.5 % of the Qualisys reference. Measured: fx/fy -0.47/-0.48,
+    +0.11/+0.11, -0.37/-0.40, -0.12/-0.14 % (7, 6, 7, 6 photos; 0.18-0.19 px RMS)."""
+    est, got, ref = pose2sim_intrinsics
+    assert all(k.source == "images" and k.rms_px < 0.3 for k in est.values())
+    for c in ref:
+        assert np.all(np.abs(got[c][:2] / ref[c][:2] - 1) <= 0.005), c
+
+
+@pytest.mark.data
+@pytest.mark.xfail(strict=True, reason="target not met: principal points 20-45 px from the Qualisys reference "
+                   "(cx +27.5 +20.9 +45.2 +19.8, cy -14.5 -26.9 -21.1 -28.7 px); 6-7 photos of a 4 x 7 board "
+                   "do not pin it to 10 px")
+def test_pose2sim_principal_points_from_separate_checkerboard_photos(pose2sim_intrinsics):
+    """Issue 21 acceptance: principal points within 10 px of the Qualisys reference."""
+    _, got, ref = pose2sim_intrinsics
+    for c in ref:
+        assert np.all(np.abs(got[c][2:] - ref[c][2:]) <= 10.0), c
