@@ -18,15 +18,23 @@ from rigbuild.errors import RigbuildError
 def _init_session(args: argparse.Namespace) -> int:
     from rigbuild.session_scaffold import scaffold_session
 
+    from rigbuild.session_scaffold import check_board
+
+    inverted = {"true": True, "false": False, "auto": "auto"}[args.inverted]
+    charuco = {"marker_size_mm": args.marker_mm, "dictionary": args.dictionary, "legacy_pattern": args.legacy_pattern}
     spec, problems = scaffold_session(
         Path(args.folder),
         board={"type": args.board, "squares_x": args.squares[0], "squares_y": args.squares[1],
-               "square_size_mm": args.square_mm, **({"marker_size_mm": args.marker_mm, "dictionary": args.dictionary}
-                                                    if args.board == "charuco" else {})},
+               "square_size_mm": args.square_mm, **(charuco if args.board == "charuco" else {}),
+               **({"inverted": inverted} if inverted is not False else {})},
         fps=args.fps, template_rig=args.template_rig, force=args.force,
     )
     print(f"session '{spec.name}': {len(spec.cameras)} cameras {spec.cameras}, image {spec.width}x{spec.height}, "
           f"{len(spec.rom)} ROM sequences, {len(spec.performances)} performances")
+    if args.board_check > 0:
+        lines, board_problems = check_board(spec, args.board_check)
+        print("\n".join(lines))
+        problems = problems + board_problems
     for p in problems:
         print(f"  problem: {p}")
     print(f"wrote {Path(args.folder) / 'session.yaml'}" + (" (with problems)" if problems else ""))
@@ -66,7 +74,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--squares", type=int, nargs=2, default=[7, 5], metavar=("X", "Y"))
     p.add_argument("--square-mm", type=float, default=30.0)
     p.add_argument("--marker-mm", type=float, default=22.0)
-    p.add_argument("--dictionary", default="DICT_5X5_100")
+    p.add_argument("--dictionary", default="DICT_5X5_100", help="any OpenCV predefined dictionary")
+    p.add_argument("--inverted", choices=["false", "true", "auto"], default="false",
+                   help="board printed inverted (white markers on black); auto tries both")
+    p.add_argument("--legacy-pattern", action="store_true", help="ChArUco layout of OpenCV < 4.6")
+    p.add_argument("--board-check", type=int, default=3, metavar="N",
+                   help="detect the board in the first N calibration images per camera (0: skip)")
     p.add_argument("--fps", type=float, default=60.0)
     p.add_argument("--template-rig", default="procedural")
     p.add_argument("--force", action="store_true", help="overwrite an existing session.yaml")

@@ -1,6 +1,7 @@
 """``rigbuild init-session``: build ``session.yaml`` from a folder laid out as the session contract says,
 then check the folder against it (every camera has calibration images, every ROM frame has every view,
-all images share one size and decode)."""
+all images share one size and decode) and check the board description on a few calibration images of
+each camera (:func:`check_board`), so a wrong board spec is caught before a run."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from rigbuild.errors import InputError
-from rigbuild.session import SessionSpec, read_session, write_session
+from rigbuild.session import IMAGE_SUFFIXES, SessionSpec, read_session, write_session
 
 _FRAME = re.compile(r"^(\d+)\.png$")
 
@@ -29,9 +30,10 @@ def scan_session_folder(folder: Path) -> dict[str, Any]:
     cameras = sorted(d.name for d in calib.iterdir() if d.is_dir())
     if len(cameras) < 2:
         raise InputError(f"found {len(cameras)} camera folders under calib/ (need 2 or more)", path=calib)
-    first = next((p for cam in cameras for p in sorted((calib / cam).glob("*.png"))), None)
+    first = next((p for cam in cameras for p in sorted((calib / cam).iterdir())
+                  if p.suffix.lower() in IMAGE_SUFFIXES), None)
     if first is None:
-        raise InputError("no PNG images under calib/<camera>/", path=calib)
+        raise InputError("no PNG/JPEG images under calib/<camera>/", path=calib)
     size = _image_size(first)
     if size is None:
         raise InputError("cannot decode image", path=first, fix="re-export the image as PNG")
@@ -70,6 +72,30 @@ def check_session_folder(spec: SessionSpec) -> list[str]:
         if not (spec.root / perf.file).exists():
             problems.append(f"{spec.root / perf.file}: performance file missing")
     return problems
+
+
+def check_board(spec: SessionSpec, per_camera: int = 3) -> tuple[list[str], list[str]]:
+    """Detect the board in the first ``per_camera`` calibration images of every camera.
+
+    Returns (report lines: corners found per image and camera, problems: cameras where the board was found in
+    none of them, with what was tried and which nearby board description finds corners)."""
+    from rigbuild.calibrate.detect import describe_board, detect_board, diagnose_board, read_gray
+
+    n_all = len(spec.board.corner_points()[1])
+    lines, problems, missing = [f"board check ({describe_board(spec.board)}; {n_all} corners):"], [], {}
+    for cam in spec.cameras:
+        paths = spec.calib_images(cam)[:per_camera]
+        grays = {p.name: read_gray(p) for p in paths}
+        found = [len(detect_board(g, spec.board)) for g in grays.values()]
+        lines.append(f"  {cam}: " + (", ".join(f"{n}/{n_all}" for n in found) + f" corners in {len(found)} images"
+                                     if found else "no calibration images"))
+        if paths and not any(found):
+            missing[cam] = grays
+    if missing:
+        cam, grays = next(iter(missing.items()))
+        problems.append(f"board not found in the sample images of {', '.join(missing)}; "
+                        + "; ".join(diagnose_board(grays, spec.board)))
+    return lines, problems
 
 
 def scaffold_session(folder: Path, board: dict, fps: float = 60.0, template_rig: str = "procedural",

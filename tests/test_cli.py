@@ -11,8 +11,19 @@ from rigbuild.io.atomic import write_json
 from rigbuild.session import read_session
 
 
-def _folder(tmp_path, size=(64, 48), missing_view=False, bad_size=False):
-    img = np.full((size[1], size[0], 3), 128, np.uint8)
+def _board_image(squares=(9, 6), inverted=False) -> np.ndarray:
+    """A ChArUco board (DICT_5X5_100, the CLI's default dictionary) on a 640x480 white page."""
+    from rigbuild.session import BoardSpec
+
+    board = BoardSpec("charuco", squares[0], squares[1], 25.0, 18.0, "DICT_5X5_100").opencv_board()
+    page = np.full((480, 640), 255, np.uint8)
+    drawn = board.generateImage((60 * squares[0], 60 * squares[1]))
+    page[(480 - drawn.shape[0]) // 2:][:drawn.shape[0], (640 - drawn.shape[1]) // 2:][:, :drawn.shape[1]] = drawn
+    return 255 - page if inverted else page
+
+
+def _folder(tmp_path, size=(64, 48), missing_view=False, bad_size=False, board=None):
+    img = np.full((size[1], size[0], 3), 128, np.uint8) if board is None else board
     for cam in ("camA", "camB"):
         for n in range(3):
             p = tmp_path / "calib" / cam / f"{n}.png"
@@ -28,13 +39,30 @@ def _folder(tmp_path, size=(64, 48), missing_view=False, bad_size=False):
 
 
 def test_init_session_scaffolds_a_valid_session(tmp_path, capsys):
-    folder = _folder(tmp_path / "actor1")
+    folder = _folder(tmp_path / "actor1", board=_board_image())
     assert main(["init-session", str(folder), "--squares", "9", "6", "--square-mm", "25", "--marker-mm", "18"]) == 0
     spec = read_session(folder)
-    assert spec.cameras == ["camA", "camB"] and (spec.width, spec.height) == (64, 48)
+    assert spec.cameras == ["camA", "camB"] and (spec.width, spec.height) == (640, 480)
     assert spec.rom[0].name == "smile" and spec.rom[0].frames == [4, 5, 6] and spec.rom[0].neutral_frame == 4
     assert spec.board.squares_x == 9 and spec.board.square_size_mm == 25.0
-    assert "2 cameras" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "2 cameras" in out
+    assert "camA: 40/40, 40/40, 40/40 corners in 3 images" in out and "camB: 40/40" in out
+
+
+def test_init_session_board_check_catches_a_wrong_board_spec(tmp_path, capsys):
+    """Issue 21: the board is detected in a few images per camera before any run; an inverted print
+    described as a normal one is reported with the change that finds it."""
+    folder = _folder(tmp_path / "actor4", board=_board_image(inverted=True))
+    assert main(["init-session", str(folder), "--squares", "9", "6", "--square-mm", "25", "--marker-mm", "18"]) == 1
+    out = capsys.readouterr().out
+    assert "camA: 0/40, 0/40, 0/40 corners in 3 images" in out
+    assert "problem: board not found in the sample images of camA, camB" in out
+    assert "with inverted: true: 120 corners in 3 sample images -> set board.inverted: true" in out
+    assert main(["init-session", str(folder), "--squares", "9", "6", "--square-mm", "25", "--marker-mm", "18",
+                 "--inverted", "auto", "--force"]) == 0
+    assert read_session(folder).board.inverted == "auto"
+    assert "camB: 40/40, 40/40, 40/40 corners" in capsys.readouterr().out
 
 
 def test_init_session_reports_missing_views_and_bad_sizes(tmp_path, capsys):
