@@ -1,4 +1,5 @@
 # The session's metrics (one file gathered from every job's fragment) and its report.
+from rigbuild.retarget.params import ribera_from_config
 
 
 rule metrics:
@@ -34,6 +35,7 @@ rule report:
     params:
         results_dir=lambda wc: results(wc.session),
         report=lambda wc: config["params"]["report"],
+        primary=lambda wc: ribera_from_config(config["params"]["retarget"].get("ribera", {})).primary,
     log:
         "logs/{session}/report/report.log",
     threads: 1

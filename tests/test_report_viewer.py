@@ -240,3 +240,15 @@ def test_write_report_writes_the_page_and_its_folder_and_names_the_install_comma
     with pytest.raises(InputError, match=r"rigbuild\.assets\.web install"):
         write_report(metrics, res, "tiny", {}, tmp_path / "out2" / "report.html")
     assert not (tmp_path / "out2" / "report.html").exists()
+
+
+def test_the_error_box_records_console_errors_and_uncaught_exceptions(tmp_path):
+    """The "no console errors" check can fail: a page with one console.error and one uncaught exception
+    reports both."""
+    page = build_report(tmp_path, "bad", {"calibration": {"rms_px": 0.1}})
+    bad = tmp_path / "bad.html"
+    bad.write_text(page.replace("</body>", '<script>console.error("boom"); notAFunction();</script></body>'))
+    dom = _chromium("--dump-dom", bad.as_uri()).stdout
+    m = re.search(r'<pre id="rb-errors"[^>]*data-count="(\d+)"[^>]*>(.*?)</pre>', dom, re.S)
+    assert m and m.group(1) == "2", dom[-2000:]
+    assert "console.error: boom" in m.group(2) and "notAFunction" in m.group(2)

@@ -23,6 +23,7 @@ from rigbuild.report.grids import fmt, grid_html, scalars_html, split_grid
 from rigbuild.report.images import figure
 from rigbuild.report.summary import STAGES, Judged, StageSummary, counts, summarize
 from rigbuild.report.thresholds import limits_text, missing_headline
+from rigbuild.retarget.methods import PRIMARY_RIBERA_METHOD
 
 ASSETS = Path(__file__).parent
 
@@ -37,23 +38,28 @@ class Pictures:
     caption: str = ""
 
 
+#: the stages' pictures; ``calib/detections/``, ``reconstruct/*/renders/`` and per-camera tracking overlays are
+#: shown once the stages write them (per camera / per sequence)
 PICTURES = {
-    "calibration": Pictures([("calib/residuals.png", 1), ("calib/camera_layout.png", 1)], [],
+    "calibration": Pictures([("calib/residuals.png", 1), ("calib/camera_layout.png", 1)],
+                            [("calib/detections/*.png", 64)],
                             "Reprojection residuals per camera and the camera layout: re-shoot cameras whose RMS "
-                            "fails."),
-    "reconstruction": Pictures([("reconstruct/*/coverage.png", 1)], [("reconstruct/*/coverage/*.png", 2)],
+                            "fails; below, the board detections per camera."),
+    "reconstruction": Pictures([("reconstruct/*/coverage.png", 1)],
+                               [("reconstruct/*/renders/*.png", 8), ("reconstruct/*/coverage/*.png", 2)],
                                "Per-frame coverage of the multi-view stereo (fraction of the face seen by 2+ "
-                               "views); below, the first frames' coverage renders of each sequence."),
-    "tracking": Pictures([("track/*/residuals.png", 1)], [("track/*/overlay/*.png", 3)],
+                               "views); below, depth and mesh renders and the first frames' coverage per sequence."),
+    "tracking": Pictures([("track/*/residuals.png", 1)], [("track/*/overlay/*.png", 24)],
                          "Tracking residual over time per sequence; below, the tracked mesh over the images."),
     "personalization": Pictures([("personalize/convergence.png", 1), ("personalize/heatmaps/overview.png", 1)],
                                 [("personalize/heatmaps/*.png", 200)],
                                 "EM objective per iteration (must not increase) and the change of every shape "
                                 "against the initial rig; below, one heat map per shape."),
-    "retargeting": Pictures([("retarget/ribera/*/*/preview.png", 4)],
-                            [("retarget/*/*/*/preview.png", 50), ("retarget/*/*/*/velocity_error.png", 50)],
-                            "Actor and character side by side at the most active frames (Ribera); below, every "
-                            "method's previews and Seol's velocity error against its per-frame baselines."),
+    "retargeting": Pictures([("retarget/{primary}/*/*/preview.png", 8)],
+                            [("retarget/*/*/*/preview.png", 64), ("retarget/*/*/*/velocity_error.png", 64)],
+                            "Actor and character side by side at the most active frames (the primary Ribera "
+                            "variant, {primary}); below, every method's previews and Seol's velocity error "
+                            "against its per-frame baselines."),
 }
 
 _CSS = (ASSETS / "report.css").read_text(encoding="utf-8")
@@ -154,10 +160,11 @@ def _pictures(results_dir: Path, patterns: Sequence[tuple[str, int]], width: int
     return figs
 
 
-def pictures_html(results_dir: Path, pics: Pictures, width: int, quality: int) -> str:
+def pictures_html(results_dir: Path, pics: Pictures, width: int, quality: int, primary: str) -> str:
     seen: set[Path] = set()
-    shown = _pictures(results_dir, pics.shown, width, quality, seen)
-    more = _pictures(results_dir, pics.more, max(160, width // 2), quality, seen)
+    shown = _pictures(results_dir, [(g.format(primary=primary), n) for g, n in pics.shown], width, quality, seen)
+    more = _pictures(results_dir, [(g.format(primary=primary), n) for g, n in pics.more], max(160, width // 2),
+                     quality, seen)
     out = f'<div class="figs">{"".join(shown)}</div>' if shown else "<p><em>No pictures for this stage.</em></p>"
     if more:
         out += f'<details><summary>{len(more)} more pictures</summary><div class="figs small">{"".join(more)}</div></details>'
@@ -183,13 +190,15 @@ def timings_html(results_dir: Path) -> str:
 def build_report(results_dir: str | os.PathLike, session: str, metrics: Mapping[str, Any],
                  thresholds: Mapping | None = None, *, three_js: str | None = None, image_width: int = 560,
                  jpeg_quality: int = 80, limits_note: str = "limits: the defaults",
-                 assets: dict[str, str] | None = None, inline_limit_mb: float = 5.0) -> str:
+                 assets: dict[str, str] | None = None, inline_limit_mb: float = 5.0,
+                 primary: str = PRIMARY_RIBERA_METHOD) -> str:
     """The report HTML text for one session's results folder.
 
     thresholds: the limit overrides in force (config and session); three_js: the text of three.min.js (None:
     the page has no 3D view); image_width / jpeg_quality: the embedded pictures; assets: when given and the
     page would exceed ``inline_limit_mb`` MB, it receives the 3D view's files (name -> text) for the folder
-    beside the page (:data:`rigbuild.report.viewer.ASSETS_FOLDER`) and the page loads them from there."""
+    beside the page (:data:`rigbuild.report.viewer.ASSETS_FOLDER`) and the page loads them from there;
+    primary: the Ribera variant reported as ``retarget.ribera.*`` (``params.retarget.ribera.primary``)."""
     from rigbuild.report.viewer import viewer_data, viewer_html
 
     results_dir = Path(results_dir)
@@ -200,8 +209,9 @@ def build_report(results_dir: str | os.PathLike, session: str, metrics: Mapping[
     data = viewer_data(results_dir) if three_js is not None else None
     for s in progress(rows, "report sections", unit="section"):
         st, pics = s.stage, PICTURES[s.stage.id]
-        parts.append(f'<section id="{st.id}"><h2>{st.title} {_badge(s.status)}</h2><p>{html.escape(pics.caption)}</p>'
-                     f"{pictures_html(results_dir, pics, image_width, jpeg_quality)}"
+        caption = html.escape(pics.caption.format(primary=primary))
+        parts.append(f'<section id="{st.id}"><h2>{st.title} {_badge(s.status)}</h2><p>{caption}</p>'
+                     f"{pictures_html(results_dir, pics, image_width, jpeg_quality, primary)}"
                      f"{metrics_html(flat, s, thresholds, has_truth)}</section>")
     parts.append(f'<section id="timings"><h2>Timings</h2>{timings_html(results_dir)}</section>')
     nav = " · ".join(f'<a href="#{s.stage.id}">{s.stage.title}</a>' for s in rows) + ' · <a href="#timings">Timings</a>'
@@ -234,7 +244,7 @@ def limits_note(report_params: Any, session: str) -> str:
 
 def write_report(metrics_json: str | os.PathLike, results_dir: str | os.PathLike, session: str,
                  report_params: Mapping[str, Any] | None, out_html: str | os.PathLike,
-                 assets_dir: str | os.PathLike | None = None) -> None:
+                 assets_dir: str | os.PathLike | None = None, primary: str = PRIMARY_RIBERA_METHOD) -> None:
     """Rule ``report``: read ``metrics.json``, build the page with the config's and the session's limits and
     the installed three.js (InputError with the install command when it is missing), write it, and the 3D
     view's files into ``assets_dir`` (default ``report_files/`` beside the page) when they do not fit inline
@@ -250,7 +260,7 @@ def write_report(metrics_json: str | os.PathLike, results_dir: str | os.PathLike
     assets: dict[str, str] = {}
     page = build_report(results_dir, session, read_metrics(metrics_json), p.for_session(session), three_js=three,
                         image_width=p.image_width, jpeg_quality=p.jpeg_quality, limits_note=limits_note(p, session),
-                        assets=assets, inline_limit_mb=p.inline_limit_mb)
+                        assets=assets, inline_limit_mb=p.inline_limit_mb, primary=primary)
     folder = Path(assets_dir) if assets_dir is not None else Path(out_html).parent / ASSETS_FOLDER
     folder.mkdir(parents=True, exist_ok=True)
     for name, text in assets.items():
