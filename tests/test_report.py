@@ -132,7 +132,7 @@ def test_the_page_opens_with_the_verdict_and_one_row_per_stage_with_its_limit(tm
     flat = {"calibration.rms_px": 0.1, "tracking.lost_frames": 3, "tracking.sequences.rom00.median_residual_mm": 0.2}
     page = build_report(tmp_path, "s1", _nest(flat))
     head = page.split('<section id="summary">', 1)[1].split("</section>", 1)[0]
-    assert '<span class="badge fail">session fail</span>' in head
+    assert '<span class="badge fail">session fail · 3 of 5 stages not measured</span>' in head
     assert "no ground truth (a real capture): judged by its gates alone" in head
     assert "capture gates (no ground truth needed): 2 pass, 1 fail, 8 not measured" in head
     rows = re.findall(r'<tr><th><a href="#(\w+)">', head)
@@ -153,7 +153,8 @@ def test_a_session_with_ground_truth_lists_its_unmeasured_goals(tmp_path):
     for key in ("p95_error_mm", "end_drift_mm", "visible_mean_error_mm"):
         assert f"<tr><td>{key}</td><td><em>not measured</em></td>" in trk, key
     assert "No metrics for this stage." in _section(page, "calibration")
-    assert "ground truth: 1 pass" in page and '<span class="badge pass">session pass</span>' in page
+    assert "ground truth: 1 pass" in page
+    assert '<span class="badge pass">session pass · 3 of 5 stages not measured</span>' in page
 
 
 def test_per_sequence_and_per_character_keys_are_grids_and_the_demo_page_is_compact(tmp_path):

@@ -233,7 +233,7 @@ def test_write_report_writes_the_page_and_its_folder_and_names_the_install_comma
     write_report(metrics, res, "tiny", {"sessions": {"tiny": {"thresholds": {"calibration.rms_px": ["max", 0.25, 0.28]}}}},
                  out)
     page = out.read_text()
-    assert '<span class="badge fail">session fail</span>' in page  # the session's own limit applied
+    assert '<span class="badge fail">session fail · 4 of 5 stages not measured</span>' in page  # the session's limit
     assert "1 from params.report.sessions.tiny" in page and 'id="rb-viewer-data"' in page
     assert [p.name for p in (out.parent / "report_files").iterdir()] == ["README.txt"]
     monkeypatch.setenv("RIGBUILD_WEB", str(tmp_path / "none"))

@@ -108,7 +108,11 @@ def summary_html(rows: Sequence[StageSummary], verdict: str, session: str, limit
     n_missing = sum(len(r.missing_gates) for r in rows)
     gt = (f"ground truth: {_counts_text(truth)}" if truth
           else "no ground truth (a real capture): judged by its gates alone")
-    badge = _badge(verdict, f"session {verdict or 'not measured'}")
+    unmeasured = sum(1 for r in rows if not r.status)
+    text = f"session {verdict or 'not measured'}"
+    if verdict and unmeasured:  # a pass over what was measured is not a pass of the stages that were not
+        text += f" · {unmeasured} of {len(rows)} stages not measured"
+    badge = _badge(verdict, text)
     return (f'<section id="summary"><h1>{html.escape(session)} {badge}</h1>'
             f'<p class="sub">capture gates (no ground truth needed): {_counts_text(gates, n_missing)} · {gt} · '
             f"{html.escape(limits_note)}</p>"
