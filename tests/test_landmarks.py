@@ -238,3 +238,20 @@ def test_james_triangulated_landmarks(real_data, landmarker):
           f"median rms {np.nanmedian(L3.rms):.2f} px; 68 points: inner {e[17:].mean():.2f} mm, jaw {e[:17].mean():.2f} mm")
     assert L3.valid.sum() >= 460 and not views.missing
     assert e[17:].mean() < 6.0
+
+
+def test_track_neutral_frame_without_a_face_names_sequence_and_frame(landmarker):
+    """registration.coarse: landmarks on a neutral frame whose views show no face: InputError naming the
+    sequence and frame (before any dot or scan work)."""
+    from rigbuild.assets.head import procedural_head_rig
+    from rigbuild.track.landmark_views import sphere_cameras
+    from rigbuild.track.matches import ViewFrame
+    from rigbuild.track.params import from_config
+    from rigbuild.track.stage import track_neutral_frame
+
+    cams = sphere_cameras(np.zeros(3), [-20, 0, 20], [0, 0, 0], width=320, height=240, focal_px=600)
+    frames = [ViewFrame(c, np.full((240, 320, 3), 90, np.uint8), np.full((240, 320), np.nan, np.float32))
+              for c in cams]
+    tp = from_config({"registration": {"coarse": "landmarks"}})
+    with pytest.warns(RuntimeWarning), pytest.raises(InputError, match="sequence 'rom01' frame 7"):
+        track_neutral_frame(procedural_head_rig(), frames, tp, where="sequence 'rom01' frame 7")

@@ -41,6 +41,7 @@ def test_unknown_registration_key_fails_with_did_you_mean():
     ({"flow": {"preset": "slow"}}, "flow preset 'slow'"),
     ({"levels": ["features", "dense"]}, "unknown tracking levels"),
     ({"registration": {"lam_schedule": [0.02]}}, "lam_schedule has 1 values"),
+    ({"registration": {"coarse": "markers"}}, "unknown coarse level 'markers'"),
 ])
 def test_bad_track_blocks_fail(block, match):
     with pytest.raises(InputError, match=match):
@@ -62,4 +63,4 @@ def test_registration_params_are_register_neutral_defaults():
 
     names = set(inspect.signature(register_neutral).parameters)
     assert names == {"template", "scan_points", "scan_normals", "dots", "rays", "params", "mesh", "depth_views",
-                     "dot_vertices"}
+                     "dot_vertices", "landmarks"}

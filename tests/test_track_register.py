@@ -182,3 +182,55 @@ def test_closest_point_targets_gate_distance_and_normal_angle():
     np.testing.assert_allclose(w, [1.0, np.cos(a), 0.0])  # third: beyond the distance gate
     _, w30, _ = closest_point_targets(pts, nrm, cKDTree(scan), scan, scan_n, gate_mm=2.0, max_angle_deg=30.0)
     np.testing.assert_allclose(w30, [1.0, 0.0, 0.0])  # the 45-degree normal is rejected at 30 degrees
+
+
+def _warped_scan(head, seed=4):
+    from rigbuild.synth.actor import make_actor_rig
+
+    actor, _ = make_actor_rig(head, seed=seed)
+    truth = apply_rigid(actor.neutral, _rot(5), np.array([3.0, -8.0, 400.0]))
+    F = head.faces[np.isin(head.faces, head.face_vertices).all(1)]
+    rng = np.random.default_rng(1)
+    tri = rng.integers(0, len(F), 40000)
+    b = rng.dirichlet([1, 1, 1], tri.size)
+    N = vertex_normals(truth, head.faces)
+    pts = np.einsum("nk,nkd->nd", b, truth[F[tri]])
+    nrm = np.einsum("nk,nkd->nd", b, N[F[tri]])
+    return truth, F, pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+
+
+def test_register_neutral_landmark_level_with_unlabeled_dots(head):
+    """coarse: landmarks on the warped actor: 60 surface landmarks (0.5 mm noise, a few unreliable ones 6 mm
+    off) place and pull the template; dots painted off the template's vertices (random points of the face)
+    are unlabeled features; each gets its own surface location. The face error stays below the default
+    (dot-labeling) level's on the same off-vertex dots."""
+    from rigbuild.track.register import LandmarkObservations
+
+    truth, F, pts, nrm = _warped_scan(head)
+    rng = np.random.default_rng(2)
+    lt = rng.choice(len(F), 60, replace=False)
+    lb = rng.dirichlet([2, 2, 2], 60)
+    X = np.einsum("nk,nkd->nd", lb, truth[F[lt]]) + rng.normal(0, 0.5, (60, 3))
+    rel = np.ones(60)
+    X[:6] += rng.normal(0, 6.0, (6, 3))
+    rel[:6] = 0.05  # sliding contour points: unreliable
+    lm = LandmarkObservations(X, F[lt], lb, rel)
+    # hand-painted dots: near each marker, a random point of a triangle around it, not the vertex
+    near = [np.flatnonzero((F == v).any(1)) for v in head.marker_vertices]
+    dt = np.array([rng.choice(n) for n in near])
+    db = rng.dirichlet([1, 1, 1], dt.size)
+    dots = np.einsum("nk,nkd->nd", db, truth[F[dt]])[rng.permutation(dt.size)]
+    face = head.face_vertices
+    reg = register_neutral(head, pts, nrm, dots, params=RegistrationParams(iterations=10, coarse="landmarks"),
+                           landmarks=lm)
+    err = np.linalg.norm(reg.vertices[face] - truth[face], axis=1).mean()
+    base = register_neutral(head, pts, nrm, dots, params=RegistrationParams(iterations=10))
+    err_dots = np.linalg.norm(base.vertices[face] - truth[face], axis=1).mean()
+    print(f"landmark level {err:.3f} mm, dot labeling on off-vertex dots {err_dots:.3f} mm")
+    assert err < 0.6 and err < err_dots
+    v, b = reg.dot_surface
+    at = np.einsum("nk,nkd->nd", b, reg.vertices[v])
+    assert np.linalg.norm(at - dots, axis=1).mean() < 0.3  # every dot sits on the registered surface
+    assert reg.dot_labels.shape == (head.marker_vertices.size,)
+    with pytest.raises(InputError, match="no face landmarks"):
+        register_neutral(head, pts, nrm, dots, params=RegistrationParams(coarse="landmarks"))

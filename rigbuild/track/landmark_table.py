@@ -4,8 +4,9 @@
   combination (weights sum to 1) of at most :data:`CANDIDATES` face-mesh points. Derived here, not copied: the ICT
   template (realistic skin, studio lights) is rendered from near-frontal views in a few expressions, the face
   mesh network runs on each image, and for every 68 point (ICT-FaceKit's own Multi-PIE vertex list,
-  ``Rig.landmarks``, with its README's jawline substitutes for points 0-7 and 9-16, projected) the weights over its nearest face-mesh points are the least-squares fit
-  (NNLS) over all images, in units of the outer-eye-corner distance.
+  ``Rig.landmarks``, with its README's jawline substitutes for points 0-7 and 9-16, projected) the weights
+  over its nearest face-mesh points are the least-squares fit (NNLS) over all images, in units of the
+  outer-eye-corner distance.
 - ``rigbuild/assets/face_landmarks/ict_468.json``: each of the 468 face-mesh points as a point on the ICT
   neutral (triangle, barycentric, nearest vertex) with a reliability. Every render (wider views, same
   expressions) gives, per landmark, the surface point under its pixel (the renderer's triangle and barycentric
@@ -71,8 +72,8 @@ def load_table_68() -> dict:
 
 
 def load_table_ict() -> dict:
-    """The committed 468 -> ICT table: ``vertex`` (468,), ``triangle`` (468,), ``bary`` (468, 3), ``spread_mm``,
-    ``reliability`` (468,), as numpy arrays."""
+    """The committed 468 -> ICT table: ``vertex`` (468,) nearest vertex, ``triangle`` (468,) and ``faces`` (468, 3)
+    its triangle (index, vertex ids), ``bary`` (468, 3), ``spread_mm``, ``reliability`` (468,), as numpy arrays."""
     from rigbuild.errors import InputError
 
     if not TABLE_ICT.is_file():
@@ -160,7 +161,7 @@ def build_table_ict(rig, samples: list[dict]) -> dict:
     tri, bary, _ = closest_surface_points(med, rig.neutral, rig.faces)
     f = rig.faces[tri]
     vert = f[np.arange(len(f)), np.argmax(bary, 1)]
-    return {"vertex": vert.tolist(), "triangle": tri.tolist(), "bary": np.round(bary, 5).tolist(),
+    return {"vertex": vert.tolist(), "triangle": tri.tolist(), "faces": f.tolist(), "bary": np.round(bary, 5).tolist(),
             "spread_mm": np.round(spread, 3).tolist(), "reliability": np.round(1 / (1 + spread ** 2), 4).tolist(),
             "n_samples": n.tolist(), "rig": "ict", "n_images": len(samples)}
 

@@ -117,3 +117,17 @@ def frame_landmarks(cameras: list[Camera], images: list[np.ndarray], landmarker,
     views = detect_view_landmarks(images, [c.id for c in cameras], landmarker, where)
     require_face(views, [c.id for c in cameras], where, path)
     return triangulate_landmarks(cameras, views.uv, max_error_px, min_views), views
+
+
+def neutral_landmarks(template, cameras: list[Camera], images: list[np.ndarray], where: str, path=None,
+                      max_error_px: float = 8.0):
+    """The ``landmarks`` coarse level's input for the neutral registration: the frame's landmarks triangulated
+    and tied to the template through the committed table (:func:`rigbuild.track.landmark_table.load_table_ict`).
+    Returns :class:`rigbuild.track.register.LandmarkObservations`; InputError naming ``where`` when fewer than
+    two views see a face, or a missing model with its install command."""
+    from rigbuild.track.landmark_table import load_table_ict
+    from rigbuild.track.landmarks import FaceLandmarker
+    from rigbuild.track.register import landmark_observations
+
+    L3, _ = frame_landmarks(cameras, images, FaceLandmarker(), where, max_error_px, path=path)
+    return landmark_observations(L3.X, load_table_ict(), template.n_vertices)

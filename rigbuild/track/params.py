@@ -117,6 +117,14 @@ class RegistrationParams:
         ``relabel_gate_mm``, mm); () keeps the first labeling.
     max_normal_angle_deg : closest points whose scan normal turns further than this (degrees) from the
         vertex normal are rejected (a neighbouring surface: the other lid, the eyeball, the inner lip).
+    coarse : the coarse level. ``dots`` (default): the dots are labeled by aligning the template's painted dot
+        vertices to them and each constrains its vertex. ``landmarks`` (Ma et al. 2016's landmark level): the
+        triangulated face landmarks (:mod:`rigbuild.track.landmarks3d`) place the template (weighted similarity,
+        then affine) and constrain their table surface points (``landmark_weight`` x the table's reliability);
+        the dots are unlabeled features: each pulls the closest point of the current mesh (within the
+        iteration's gate, weight ``dot_weight``), never a fixed vertex; their labels (for the sequence
+        tracker) are only read off the registered mesh at the end.
+    landmark_min_reliability : landmarks below it do not take part in the initial alignment.
     """
 
     ray_labels_are_dots: bool = True
@@ -132,6 +140,13 @@ class RegistrationParams:
     relabel_at: tuple[int, ...] = (4, 8)
     relabel_gate_mm: float = 3.0
     max_normal_angle_deg: float = 30.0
+    coarse: str = "dots"
+    landmark_weight: float = 1.0
+    landmark_min_reliability: float = 0.2
+
+
+#: the neutral registration's coarse levels (:class:`RegistrationParams` ``coarse``)
+COARSE_LEVELS = ("dots", "landmarks")
 
 
 @dataclass
@@ -214,6 +229,9 @@ def _check(p: TrackParams) -> TrackParams:
     if p.flow.preset not in FLOW_PRESETS:
         raise InputError(f"unknown flow preset '{p.flow.preset}'", path="config params.track.flow.preset",
                          fix=f"use one of {list(FLOW_PRESETS)}")
+    if p.registration.coarse not in COARSE_LEVELS:
+        raise InputError(f"unknown coarse level '{p.registration.coarse}'",
+                         path="config params.track.registration.coarse", fix=f"use one of {list(COARSE_LEVELS)}")
     for name in ("lam_schedule", "gate_schedule_mm"):
         v = getattr(p.registration, name)
         if len(v) != 2:

@@ -13,7 +13,11 @@
    camera ray through it; linearized as the ray's closest point).
    The schedule loosens the regularization (lambda grows) while the closest-point gate shrinks.
 
-No hand-placed points: everything derives from the dot detections and the scan.
+With ``params.coarse = "landmarks"`` the first level is the triangulated face landmarks instead of the dot
+labeling (:func:`landmark_observations`, :func:`_landmark_alignment_from_landmarks`); the dots are then unlabeled
+features that pull the closest point of the current mesh (:func:`_feature_terms`).
+
+No hand-placed points: everything derives from the dot detections (or the landmarks) and the scan.
 """
 
 from __future__ import annotations
@@ -47,6 +51,35 @@ class RayObservations:
 
 
 @dataclass
+class LandmarkObservations:
+    """Triangulated face landmarks for the ``landmarks`` coarse level.
+
+    points : (L, 3) mm; vertices : (L, 3) template vertex ids and bary : (L, 3) barycentrics of each
+    landmark's surface point on the template (a landmark table, :mod:`rigbuild.track.landmark_table`);
+    weight : (L,) reliability in (0, 1].
+    """
+
+    points: np.ndarray
+    vertices: np.ndarray
+    bary: np.ndarray
+    weight: np.ndarray
+
+
+def landmark_observations(X: np.ndarray, table: dict, n_vertices: int) -> LandmarkObservations:
+    """The valid rows of triangulated landmarks ``X`` (468, 3) (NaN = lost) with a landmark table
+    (``triangle`` is not used: ``vertices`` come from ``faces``; see :func:`rigbuild.track.landmark_table.load_table_ict`)
+    checked against the template's vertex count ``n_vertices``."""
+    faces = np.asarray(table["faces"], np.int64)
+    if faces.max() >= n_vertices:
+        raise InputError(f"the landmark table is for a {table.get('rig', '?')} template, not one with {n_vertices} "
+                         "vertices", fix="use the ict template with registration.coarse: landmarks, or make a table "
+                         "for this template (python -m rigbuild.track.landmark_table)")
+    ok = np.isfinite(np.asarray(X, float)[:, 0])
+    return LandmarkObservations(np.asarray(X, float)[ok], faces[ok], np.asarray(table["bary"], float)[ok],
+                                np.asarray(table["reliability"], float)[ok])
+
+
+@dataclass
 class NeutralRegistration:
     """Result: ``vertices`` (V, 3) mm actor neutral in template topology; ``markers`` (M, 3) the marker
     vertices on it; ``similarity`` (s, R, t) template -> world; ``dot_labels`` (D,) index of the dot
@@ -59,6 +92,9 @@ class NeutralRegistration:
     scan_rms_mm: float  # point-to-plane RMS of the face region to the scan
     dot_rms_mm: float
     history: list[dict] = field(default_factory=list)
+    #: (D, 3) template vertex ids and (D, 3) barycentrics of each dot's closest point on the registered neutral
+    #: (the ``landmarks`` coarse level: every detected dot gets its own surface location), else None
+    dot_surface: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def require_markers(template: Rig) -> None:
@@ -306,6 +342,7 @@ class _DotTerms(NamedTuple):
     r_bary: np.ndarray | None
     r_origin: np.ndarray | None
     r_dir: np.ndarray | None
+    dot_w: np.ndarray | None = None  # (K,) per-constraint weights (None: params.dot_weight for all)
 
 
 def _dot_terms(labels: np.ndarray, dots: np.ndarray, rays: RayObservations | None, mk_local: np.ndarray,
@@ -343,14 +380,51 @@ def _landmark_alignment(template: Rig, dots: np.ndarray, dot_vertices: np.ndarra
     return labels, (s, R, t), aligned_full
 
 
-def _dot_rms(p: np.ndarray, mk_local: np.ndarray, terms: _DotTerms) -> float:
-    """RMS (mm) of the constrained painted dot vertices of ``p`` (T, 3) to their dots."""
+def _dot_rms(p: np.ndarray, mk_local: np.ndarray, terms: _DotTerms, faces: np.ndarray | None = None) -> float:
+    """RMS (mm) of the constrained painted dot vertices of ``p`` (T, 3) to their dots; with ``faces`` (the
+    ``landmarks`` level) of every constraint's surface point (landmarks and unlabeled dots) to its target."""
+    if faces is not None:
+        at = np.einsum("nk,nkd->nd", terms.dot_bary, p[faces[terms.dot_tri]])
+        return float(np.sqrt(np.mean(np.sum((at - terms.dot_targets) ** 2, 1)))) if len(at) else float("nan")
     return float(np.sqrt(np.mean(np.sum((p[mk_local[terms.has_dot]] - terms.dot_targets) ** 2, 1))))
+
+
+def _landmark_alignment_from_landmarks(template: Rig, lm: LandmarkObservations, params: RegistrationParams
+                                       ) -> tuple[tuple[float, np.ndarray, np.ndarray], np.ndarray]:
+    """Place the template on the triangulated landmarks: weighted similarity on the reliable ones, then (with
+    ``params.affine`` and >= 12 of them) an affine map. Returns (s, R, t) and the aligned neutral (V, 3)."""
+    P = np.einsum("nk,nkd->nd", lm.bary, template.neutral[lm.vertices])
+    keep = lm.weight >= params.landmark_min_reliability
+    if keep.sum() < 4:
+        raise InputError(f"only {int(keep.sum())} reliable face landmarks were triangulated on the neutral frame",
+                         fix="check that at least two cameras see the whole face, or use registration.coarse: dots")
+    s, R, t = fit_similarity(P[keep], lm.points[keep], lm.weight[keep])
+    aligned = apply_rigid(template.neutral, R, t, s)
+    if params.affine and keep.sum() >= 12:
+        A, b = fit_affine(P[keep], lm.points[keep])
+        aligned = template.neutral @ A.T + b
+    return (s, R, t), aligned
+
+
+def _feature_terms(p: np.ndarray, mesh: TrackingMesh, lm_tri: np.ndarray, lm_bary: np.ndarray, lm: LandmarkObservations,
+                   dots: np.ndarray, params: RegistrationParams, gate_mm: float) -> _DotTerms:
+    """The ``landmarks`` level's constraints at the current tracking-mesh vertices ``p``: every landmark's table
+    point (lm_tri, lm_bary on the tracking mesh) to its triangulated position (weight landmark_weight x
+    reliability), every dot within ``gate_mm`` of the mesh to it from its closest mesh point (dot_weight)."""
+    from rigbuild.track.matches import closest_surface_points
+
+    tri, bary, d = closest_surface_points(dots, p, mesh.faces)
+    ok = d <= gate_mm
+    none = np.zeros(0, np.int64)
+    return _DotTerms(np.zeros(0, bool), np.concatenate([lm_tri, tri[ok]]), np.concatenate([lm_bary, bary[ok]]),
+                     np.concatenate([lm.points, dots[ok]]), none, None, None, None, None,
+                     np.concatenate([params.landmark_weight * lm.weight, np.full(int(ok.sum()), params.dot_weight)]))
 
 
 def _nonrigid_step(p: np.ndarray, it: int, params: RegistrationParams, solver: LaplacianSolver,
                    mesh: TrackingMesh, tree: cKDTree, scan_points: np.ndarray, scan_normals: np.ndarray,
-                   terms: _DotTerms, mk_local: np.ndarray, depth_views: list | None) -> tuple[np.ndarray, dict]:
+                   terms: _DotTerms, mk_local: np.ndarray, depth_views: list | None,
+                   faces: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """One non-rigid iteration ``it`` from the tracking-mesh vertices ``p`` (T, 3) mm: closest points on the
     scan (lambda and gate from their schedules), the dot and ray terms, one Laplacian solve. Returns the new
     vertices and the iteration's history row."""
@@ -370,7 +444,7 @@ def _nonrigid_step(p: np.ndarray, it: int, params: RegistrationParams, solver: L
     tris = [cp_tri, terms.dot_tri]
     barys = [cp_bary, terms.dot_bary]
     tgts = [tgt, terms.dot_targets]
-    ws = [w, np.full(terms.dot_tri.size, params.dot_weight)]
+    ws = [w, np.full(terms.dot_tri.size, params.dot_weight) if terms.dot_w is None else terms.dot_w]
     if terms.r_local.size:
         tris.append(terms.r_tri)
         barys.append(terms.r_bary)
@@ -388,7 +462,7 @@ def _nonrigid_step(p: np.ndarray, it: int, params: RegistrationParams, solver: L
     valid = w > 0
     row = {"iteration": it, "lambda": lam, "gate_mm": gate,
            "scan_median_mm": float(np.median(dist[valid])) if valid.any() else float("nan"),
-           "closest_points": int(valid.sum()), "dot_rms_mm": _dot_rms(p, mk_local, terms)}
+           "closest_points": int(valid.sum()), "dot_rms_mm": _dot_rms(p, mk_local, terms, faces)}
     return p, row
 
 
@@ -403,6 +477,7 @@ def register_neutral(
     mesh: TrackingMesh | None = None,
     depth_views: list | None = None,
     dot_vertices: np.ndarray | None = None,
+    landmarks: LandmarkObservations | None = None,
 ) -> NeutralRegistration:
     """Register the template's neutral to the actor's neutral scan.
 
@@ -416,6 +491,7 @@ def register_neutral(
     observed in at least one view (:func:`observed_views`, ``params.visibility_mm``).
     dot_vertices : (D,) template vertices of the painted dots (:func:`rigbuild.dots.painted_dot_vertices`:
     the markers and the stencil dots); default: the markers.
+    landmarks : the triangulated face landmarks, required by ``params.coarse = "landmarks"``.
 
     Returns :class:`NeutralRegistration` (vertices in full template topology).
     """
@@ -428,6 +504,12 @@ def register_neutral(
                          fix="check the reconstruction of the neutral frame (depth maps / fused mesh)")
     mesh = mesh or build_tracking_mesh(template.neutral, template.faces, template.face_region)
     dot_vertices = template.marker_vertices if dot_vertices is None else np.asarray(dot_vertices, np.int64)
+    if params.coarse == "landmarks":
+        if landmarks is None:
+            raise InputError("registration.coarse is 'landmarks' but no face landmarks were given",
+                             fix="pass the triangulated landmarks (track_neutral_frame does) or use coarse: dots")
+        return _register_from_landmarks(template, scan_points, scan_normals, dots, landmarks, params, mesh,
+                                        depth_views, dot_vertices)
     labels, (s, R, t), aligned_full = _landmark_alignment(template, dots, dot_vertices, params.affine)
     rest = mesh.local(aligned_full)
     solver = LaplacianSolver(rest, mesh.faces)
@@ -447,16 +529,62 @@ def register_neutral(
         p, row = _nonrigid_step(p, it, params, solver, mesh, tree, scan_points, scan_normals, terms, mk_local,
                                 depth_views)
         history.append(row)
+    full = mesh.to_full(p, aligned_full)
+    return NeutralRegistration(
+        vertices=full, markers=full[template.marker_vertices], similarity=(s, R, t), dot_labels=labels,
+        scan_rms_mm=_scan_rms(p, mesh, tree, scan_points, scan_normals, params),
+        dot_rms_mm=_dot_rms(p, mk_local, terms), history=history,
+    )
+
+
+def _scan_rms(p: np.ndarray, mesh: TrackingMesh, tree: cKDTree, scan_points: np.ndarray, scan_normals: np.ndarray,
+              params: RegistrationParams) -> float:
+    """Point-to-plane RMS (mm) of the face region of ``p`` to the scan, at the last iteration's gate."""
     from rigbuild.track.laplacian import vertex_normals
 
     face = mesh.face_local
     nrm = vertex_normals(p, mesh.faces)
     tgt, w, _ = closest_point_targets(p[face], nrm[face], tree, scan_points, scan_normals,
                                       params.gate_schedule_mm[1])
-    dist = np.linalg.norm(tgt - p[face], axis=1)  # point-to-plane distance to the scan
+    dist = np.linalg.norm(tgt - p[face], axis=1)
+    return float(np.sqrt(np.mean(dist[w > 0] ** 2))) if np.any(w > 0) else float("nan")
+
+
+def _register_from_landmarks(template: Rig, scan_points: np.ndarray, scan_normals: np.ndarray, dots: np.ndarray,
+                             lm: LandmarkObservations, params: RegistrationParams, mesh: TrackingMesh,
+                             depth_views: list | None, dot_vertices: np.ndarray) -> NeutralRegistration:
+    """:func:`register_neutral` with the ``landmarks`` coarse level (see :class:`RegistrationParams`)."""
+    from rigbuild.track.matches import closest_surface_points
+
+    (s, R, t), aligned_full = _landmark_alignment_from_landmarks(template, lm, params)
+    rest = mesh.local(aligned_full)
+    solver = LaplacianSolver(rest, mesh.faces)
+    tree = cKDTree(scan_points)
+    # the table's surface points on the tracking mesh (landmarks on untracked parts are dropped)
+    at = np.einsum("nk,nkd->nd", lm.bary, aligned_full[lm.vertices])
+    lm_tri, lm_bary, d = closest_surface_points(at, rest, mesh.faces)
+    on = d < 1e-4
+    lm = LandmarkObservations(lm.points[on], lm.vertices[on], lm.bary[on], lm.weight[on])
+    lm_tri, lm_bary = lm_tri[on], lm_bary[on]
+    mk_local = mesh.full_to_local[dot_vertices]
+    dots = np.asarray(dots, np.float64).reshape(-1, 3)
+    p = rest.copy()
+    history = []
+    for it in range(params.iterations):
+        a = it / max(params.iterations - 1, 1)
+        gate = params.gate_schedule_mm[0] * (params.gate_schedule_mm[1] / params.gate_schedule_mm[0]) ** a
+        terms = _feature_terms(p, mesh, lm_tri, lm_bary, lm, dots, params, gate)
+        p, row = _nonrigid_step(p, it, params, solver, mesh, tree, scan_points, scan_normals, terms, mk_local,
+                                depth_views, faces=mesh.faces)
+        row["landmarks"], row["dots_used"] = int(lm_tri.size), int(terms.dot_tri.size - lm_tri.size)
+        history.append(row)
     full = mesh.to_full(p, aligned_full)
+    at_dots = np.where((mk_local >= 0)[:, None], p[np.maximum(mk_local, 0)], np.nan)
+    labels = relabel_dots(at_dots, dots, params.relabel_gate_mm)  # read off the mesh, for the sequence tracker
+    tri, bary, _ = closest_surface_points(dots, p, mesh.faces)
     return NeutralRegistration(
         vertices=full, markers=full[template.marker_vertices], similarity=(s, R, t), dot_labels=labels,
-        scan_rms_mm=float(np.sqrt(np.mean(dist[w > 0] ** 2))) if np.any(w > 0) else float("nan"),
-        dot_rms_mm=_dot_rms(p, mk_local, terms), history=history,
+        scan_rms_mm=_scan_rms(p, mesh, tree, scan_points, scan_normals, params),
+        dot_rms_mm=_dot_rms(p, mk_local, terms, mesh.faces), history=history,
+        dot_surface=(mesh.vertex_ids[mesh.faces[tri]], bary),
     )

@@ -105,7 +105,8 @@ def run_track_neutral(session_dir: str | os.PathLike, cameras_path: str | os.Pat
     """Rule track_neutral: register the template to the first ROM sequence's neutral frame.
 
     depth_dir : that sequence's depth folder; params : ``config["params"]["track"]``. Writes ``neutral.npz``
-    (vertices, markers (mm), marker ids/names, similarity, dot labels, sequence, frame) and the fragment
+    (vertices, markers (mm), marker ids/names, similarity, dot labels, sequence, frame; with the ``landmarks``
+    coarse level each dot's surface point ``dot_surface_vertices`` / ``dot_surface_bary``) and the fragment
     ``{"tracking": {neutral_scan_rms_mm, neutral_dot_rms_mm, neutral_dots_matched, neutral_seconds}}``."""
     from rigbuild.io.atomic import save_npz
     from rigbuild.io.metrics import write_metrics_fragment
@@ -114,11 +115,14 @@ def run_track_neutral(session_dir: str | os.PathLike, cameras_path: str | os.Pat
     seq = spec.rom[0]
     frames = load_views(spec, cameras, seq.name, seq.neutral_frame, depth_dir)
     t0 = time.perf_counter()
-    reg, _ = track_neutral_frame(template, frames, tp, dot_vertices=dot_vertices)
+    reg, _ = track_neutral_frame(template, frames, tp, dot_vertices=dot_vertices,
+                                 where=f"sequence '{seq.name}' frame {seq.neutral_frame}")
+    extra = {} if reg.dot_surface is None else {"dot_surface_vertices": reg.dot_surface[0],
+                                                "dot_surface_bary": reg.dot_surface[1]}
     save_npz(neutral_path, vertices=reg.vertices.astype(np.float32), markers=reg.markers.astype(np.float32),
              marker_vertices=template.marker_vertices, marker_names=np.asarray(template.marker_names),
              scale=np.float64(reg.similarity[0]), rotation=reg.similarity[1], translation=reg.similarity[2],
-             dot_labels=reg.dot_labels, sequence=np.asarray(seq.name), frame=np.int64(seq.neutral_frame))
+             dot_labels=reg.dot_labels, sequence=np.asarray(seq.name), frame=np.int64(seq.neutral_frame), **extra)
     values = {"neutral_scan_rms_mm": reg.scan_rms_mm, "neutral_dot_rms_mm": reg.dot_rms_mm,
               "neutral_dots_matched": int((reg.dot_labels >= 0).sum()), "neutral_seconds": time.perf_counter() - t0}
     return write_metrics_fragment(metrics_path, "tracking", values)
@@ -221,20 +225,29 @@ def run_track_summary(sequence_metrics: Sequence[str | os.PathLike], summary_pat
 
 # --------------------------------------------------------------------------------------------- tracking
 def track_neutral_frame(template: Rig, frames: list[ViewFrame], params: TrackParams | None = None,
-                        dot_vertices: np.ndarray | None = None) -> tuple[NeutralRegistration, TrackingMesh]:
+                        dot_vertices: np.ndarray | None = None, where: str = "the neutral frame"
+                        ) -> tuple[NeutralRegistration, TrackingMesh]:
     """Register the template neutral to the neutral frame's reconstruction (depth maps) and painted dots.
 
     params : :class:`TrackParams` (its ``dots`` detect the dots, its ``registration`` drives
-    :func:`register_neutral`); dot_vertices : (D,) template vertices of the painted dots
-    (:func:`rigbuild.dots.painted_dot_vertices`), default the markers.
+    :func:`register_neutral`; ``registration.coarse: landmarks`` also finds and triangulates the face landmarks,
+    :func:`rigbuild.track.landmarks3d.neutral_landmarks`); dot_vertices : (D,) template vertices of the painted
+    dots (:func:`rigbuild.dots.painted_dot_vertices`), default the markers; where : the frame, for errors
+    ("sequence 'rom01' frame 0").
     """
     require_markers(template)
     p = params or TrackParams()
+    landmarks = None
+    if p.registration.coarse == "landmarks":
+        from rigbuild.track.landmarks3d import neutral_landmarks
+
+        landmarks = neutral_landmarks(template, [f.camera for f in frames], [f.image for f in frames], where)
     dots, rays = neutral_dots(frames, p.dots)
     pts, nrm = scan_from_depth(frames)
     mesh = build_tracking_mesh(template.neutral, template.faces, template.face_region)
     reg = register_neutral(template, pts, nrm, dots, rays, p.registration, mesh=mesh,
-                           depth_views=[(f.camera, f.depth) for f in frames], dot_vertices=dot_vertices)
+                           depth_views=[(f.camera, f.depth) for f in frames], dot_vertices=dot_vertices,
+                           landmarks=landmarks)
     return reg, mesh
 
 
