@@ -114,7 +114,7 @@ def test_actor_rig_perturbations_are_as_documented():
 
 def test_marker_c3d_roundtrip(tmp_path):
     rng = np.random.default_rng(0)
-    m = rng.normal(scale=50, size=(40, 5, 3))
+    m = 100.0 + np.cumsum(rng.normal(scale=2.0, size=(40, 5, 3)), axis=0)  # a random walk, 120 mm/s at 60 fps
     m[3:9, 2] = np.nan
     names = ["browInner_L", "browInner_R", "lipUpper_C", "jaw_C", "nose_C"]
     write_markers_c3d(tmp_path / "p.c3d", m, names, 60.0)
