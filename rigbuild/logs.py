@@ -10,13 +10,23 @@ import traceback
 from pathlib import Path
 from typing import Any, Callable
 
+from rigbuild.progress import LOGGER as PROGRESS_LOGGER
+
+
+def job_label(snakemake: Any) -> str:
+    """``"track_sequence session=demo seq=rom01"``: the rule and its wildcards, to prefix a job's progress lines."""
+    wildcards = getattr(snakemake, "wildcards", None)
+    items = dict(wildcards.items()) if hasattr(wildcards, "items") else {}
+    return " ".join([str(getattr(snakemake, "rule", "?"))] + [f"{k}={v}" for k, v in items.items()])
+
 
 def run_logged(snakemake: Any, main: Callable[[Any], None]) -> None:
     """Run ``main(snakemake)`` with stdout/stderr, logging and warnings going to the rule's log.
 
     On an exception the traceback is written to the log and the error's message is printed to the
     real stderr (so the user sees 'file: what is wrong / fix: ...' in the Snakemake output), then the
-    process exits non-zero.
+    process exits non-zero. Progress lines (:mod:`rigbuild.progress`) also go to the real stderr, prefixed with
+    :func:`job_label`, so that a long job is not silent in Snakemake's output.
     """
     log_path = Path(snakemake.log[0]) if len(snakemake.log) else None
     if log_path is None:
@@ -31,6 +41,10 @@ def run_logged(snakemake: Any, main: Callable[[Any], None]) -> None:
         logger.addHandler(handler)
         logger.setLevel(logging.INFO)
         logging.captureWarnings(True)
+        shown = logging.StreamHandler(real_stderr)
+        shown.setFormatter(logging.Formatter(f"[{job_label(snakemake)}] %(message)s"))
+        progress_logger = logging.getLogger(PROGRESS_LOGGER)
+        progress_logger.addHandler(shown)
         t0 = time.perf_counter()
         try:
             main(snakemake)
@@ -41,4 +55,5 @@ def run_logged(snakemake: Any, main: Callable[[Any], None]) -> None:
             raise SystemExit(1) from None
         finally:
             logger.removeHandler(handler)
+            progress_logger.removeHandler(shown)
             print(f"elapsed {time.perf_counter() - t0:.2f} s", file=fh)

@@ -7,6 +7,7 @@ report sections) give identical results with and without a terminal, and that th
 from __future__ import annotations
 
 import io
+import logging
 import sys
 
 import numpy as np
@@ -41,15 +42,45 @@ class NotATTY(io.StringIO):
         return False
 
 
-def test_off_a_terminal_the_iterable_itself_is_returned(monkeypatch):
+def test_off_a_terminal_the_same_items_come_out_and_progress_lines_are_logged(monkeypatch, caplog):
     monkeypatch.setattr(sys, "stderr", NotATTY())
+    import rigbuild.progress as P
+
     items = [3, 1, 4, 1, 5]
-    assert progress(items, "x") is items
-    r = range(7)
-    assert progress(r, "x", total=7, unit="frame") is r
+    with caplog.at_level(logging.INFO, logger=P.LOGGER):
+        assert list(progress(items, "digits", unit="digit")) == items
+    lines = [r.getMessage() for r in caplog.records if r.name == P.LOGGER]
+    assert lines[0].startswith("digits: digit 1/5 (20%)") and lines[-1].startswith("digits: digit 5/5 (100%)")
+    assert len(lines) == 2  # first and last: the five items took less than LOG_INTERVAL_S
+    caplog.clear()
     gen = (i for i in range(3))
-    assert progress(gen, "x") is gen
-    assert sys.stderr.getvalue() == ""
+    with caplog.at_level(logging.INFO, logger=P.LOGGER):
+        assert list(progress(gen, "gen")) == [0, 1, 2]
+    assert [r.getMessage().split(",")[0] for r in caplog.records] == ["gen: step 1"]
+    assert sys.stderr.getvalue() == ""  # nothing is drawn: the lines go to the logger only
+
+
+def test_progress_line_estimates_the_time_left():
+    from rigbuild.progress import progress_line
+
+    assert progress_line("ROM images", 3, 12, "sequence", 60.0) == \
+        "ROM images: sequence 3/12 (25%), 60 s, about 180 s left"
+    assert progress_line("x", 4, None, "frame", 2.0) == "x: frame 4, 2 s"
+
+
+def test_run_logged_shows_progress_lines_with_the_job_label(tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    from rigbuild.logs import run_logged
+
+    err = NotATTY()
+    monkeypatch.setattr(sys, "stderr", err)
+    job = SimpleNamespace(log=[str(tmp_path / "job.log")], rule="track_sequence",
+                          wildcards={"session": "demo", "seq": "rom01"})
+    run_logged(job, lambda smk: list(progress(range(3), "frames", unit="frame")))
+    shown = err.getvalue().splitlines()
+    assert shown[0].startswith("[track_sequence session=demo seq=rom01] frames: frame 1/3")
+    assert "frames: frame 3/3 (100%)" in (tmp_path / "job.log").read_text()
 
 
 def test_on_a_terminal_a_bar_is_drawn_and_the_same_items_come_out(monkeypatch):
