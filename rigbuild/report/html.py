@@ -91,6 +91,9 @@ def _summary_row(s: StageSummary) -> str:
         number = (f'<td>{html.escape(_short(n.key, st.prefix))}{tag}</td><td class="num {n.status}">{fmt(n.value)}</td>'
                   f"<td>{html.escape(limits_text(n.rule, '≤', '≥'))}</td>")
     gates = _counts_text(s.gates, len(s.missing_gates))
+    if s.missing_gates:
+        names = ", ".join(_short(g, st.prefix) for g in s.missing_gates)
+        gates = f'<span title="not measured: {html.escape(names)}">{gates}</span>'
     if s.truth:
         w = s.truth[0]
         truth = (f"{_counts_text(s.truth)}; worst {html.escape(_short(w.key, st.prefix))} "
