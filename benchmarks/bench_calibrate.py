@@ -13,8 +13,13 @@
    by rigbuild.calibrate.session.calibrate_session, compared with ground truth; plus the corner
    localisation accuracy of render + detector (detected corners vs Camera.project of the true corners).
 
+6. Real footage (issue 21): the 4-camera sleap-anipose ChArUco recording (84 JPEG images, 1280x1024) as the
+   calibration-only session config/calibration-only/sleap-charuco with config/sleap-charuco.yaml's
+   parameters, timed end to end (detection, intrinsics, pose graph, bundle adjustment, held-out refit;
+   goal: under 30 s on 2 cores); skipped when $RIGBUILD_DATA lacks it.
+
 Writes benchmarks/out/calibrate.json and prints a table.
-Run: OPENBLAS_NUM_THREADS=1 python benchmarks/bench_calibrate.py [--only timing,solver,accuracy,detection,rendered]
+Run: OPENBLAS_NUM_THREADS=1 python benchmarks/bench_calibrate.py [--only timing,solver,accuracy,detection,rendered,real]
 (--only reruns the named sections and keeps the others from the existing json.)
 """
 
@@ -185,7 +190,31 @@ def rendered_ict_tier(folder=None):
     return out
 
 
-SECTIONS = ("timing", "solver", "accuracy", "detection", "rendered")
+def real_footage():
+    """Section 6: the sleap-anipose recording through calibrate_session, timed; None without the data."""
+    import yaml
+
+    from rigbuild.calibrate.params import from_config
+    from rigbuild.calibrate.session import calibrate_session, calibration_metrics
+    from rigbuild.paths import data_dir
+
+    if not (data_dir() / "sleap-anipose-charuco-4cam").is_dir():
+        return None
+    params = yaml.safe_load((ROOT / "config" / "sleap-charuco.yaml").read_text())["params"]["calibrate"]
+    t0 = time.perf_counter()
+    _, res = calibrate_session(ROOT / "config" / "calibration-only" / "sleap-charuco", from_config(params))
+    wall = time.perf_counter() - t0
+    m = calibration_metrics(res)
+    keep = ("status", "rms_px", "camera_rms_px", "heldout_reprojection_rms_px", "heldout_camera_rms_px",
+            "heldout_scale_deviation_pct", "heldout_n_board_poses", "heldout_n_corners", "n_images_used",
+            "n_corners", "bundle_iterations_nfev", "bundle_converged", "plausibility_flags", "seconds_detect",
+            "seconds_bundle")
+    return {"session": "config/calibration-only/sleap-charuco (params: config/sleap-charuco.yaml)",
+            "params": params, "wall_seconds": wall, "goal_seconds": 30.0, "meets_goal": bool(wall < 30.0),
+            "seconds_rig_fit_and_heldout": wall - m["seconds_detect"], **{k: m[k] for k in keep}}
+
+
+SECTIONS = ("timing", "solver", "accuracy", "detection", "rendered", "real")
 
 
 def main(argv=None):
@@ -257,6 +286,16 @@ def main(argv=None):
         print(f"  (mean over cameras: centre {r['center_error_mm_mean']:.4f} mm, rotation "
               f"{r['rotation_error_deg_mean']:.4f} deg, focal {r['focal_error_pct_mean']:.4f} %; "
               f"scale {r['scale_error_pct']:+.4f} %)")
+    if "real" in only:
+        print("== real footage: sleap-anipose 4 cameras (calibration-only session)")
+        r = real_footage()
+        out["real_sleap_anipose"] = r
+        if r is None:
+            print("  skipped: sleap-anipose-charuco-4cam not in $RIGBUILD_DATA")
+        else:
+            print(f"  {r['wall_seconds']:.1f} s (goal 30 s; detection {r['seconds_detect']:.1f} s), status {r['status']}, "
+                  f"rms {r['rms_px']:.3f} px, held out {r['heldout_reprojection_rms_px']:.3f} px "
+                  f"({r['heldout_n_board_poses']} poses), scale {r['heldout_scale_deviation_pct']:+.4f} %")
     path.parent.mkdir(parents=True, exist_ok=True)
     from rigbuild.io.atomic import write_json
 

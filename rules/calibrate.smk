@@ -1,5 +1,7 @@
 # Multi-camera rig calibration from ChArUco / chessboard images.
-# Uses from common.smk: config["params"]["calibrate"], session_yaml(session), calib_images(session).
+# Uses from common.smk: config["params"]["calibrate"], session_yaml(session), calib_images(session) (rig images,
+# calib_intrinsics images, an intrinsics file). A failed quality gate keeps a copy of the outputs in
+# results/{session}/calib_diagnostics/ (Snakemake deletes a failed job's outputs).
 # config["params"]["calibrate"] keys: rigbuild.calibrate.params.CalibrationOptions fields (checked at DAG start).
 
 

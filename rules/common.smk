@@ -153,11 +153,16 @@ def capture_images(session, paths):
 
 
 def calib_images(session):
-    """A real capture's calibration images (none listed for a synthetic session: see capture_images)."""
+    """A real capture's calibration inputs (none listed for a synthetic session: see capture_images): the rig
+    images, each camera's own intrinsics images and a session.yaml ``intrinsics:`` file."""
     if is_synthetic(session):
         return []
     spec = session_spec(session)
-    return [str(p) for cam in spec.cameras for p in spec.calib_images(cam)]
+    files = [str(p) for cam in spec.cameras for p in spec.calib_images(cam) + spec.intrinsics_images(cam)]
+    given = spec.raw.get("intrinsics")
+    if isinstance(given, str):
+        files.append(str(Path(given) if Path(given).is_absolute() else spec.root / given))
+    return files
 
 
 def ground_truth_file(session, relpath):
