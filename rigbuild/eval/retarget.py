@@ -68,28 +68,37 @@ def mean_correlation(weights: np.ndarray, weights_true: np.ndarray, shapes: np.n
 
 
 def align_to_truth(weights: np.ndarray, names: Sequence[str], true_weights: np.ndarray,
-                   true_names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Columns of both weight arrays for the shape names they share (estimated order kept)."""
+                   true_names: Sequence[str], path: str | os.PathLike | None = None,
+                   truth_path: str | os.PathLike | None = None) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Columns of both weight arrays for the shape names they share (estimated order kept). ``path`` (the
+    weight curves) and ``truth_path`` (the ground truth / actor's rig) are named in errors."""
     tn = [str(n) for n in true_names]
     shared = [n for n in names if n in tn]
     if not shared:
-        raise InputError("the character shares no shape name with the ground truth",
-                         fix="evaluate characters with the actor's (ARKit) shape names")
+        raise InputError(
+            f"the character's {len(names)} shapes ({', '.join(map(str, list(names)[:4]))}, ...) share no name with "
+            f"the actor's rig's {len(tn)} ({', '.join(tn[:4])}, ...){'' if truth_path is None else f' in {truth_path}'}",
+            path=path, fix="name the character's blendshapes as the actor's rig does (ARKit names), e.g. rename "
+            "them when building the character, so its weights can be compared shape by shape")
     if weights.shape[0] != true_weights.shape[0]:
-        raise InputError(f"{weights.shape[0]} retargeted frames vs {true_weights.shape[0]} ground-truth frames")
+        raise InputError(f"{weights.shape[0]} retargeted frames vs {true_weights.shape[0]} ground-truth frames"
+                         f"{'' if truth_path is None else f' in {truth_path}'}", path=path,
+                         fix="evaluate the weight curves of the performance the ground truth belongs to")
     a = weights[:, [list(names).index(n) for n in shared]]
     b = true_weights[:, [tn.index(n) for n in shared]]
     return a, b, shared
 
 
 def retarget_metrics(weights: np.ndarray, names: Sequence[str], true_weights: np.ndarray,
-                     true_names: Sequence[str], actor_sparse_deltas: np.ndarray) -> dict:
+                     true_names: Sequence[str], actor_sparse_deltas: np.ndarray,
+                     path: str | os.PathLike | None = None, truth_path: str | os.PathLike | None = None) -> dict:
     """Metrics of weights (F, K) against ground truth (F, K').
 
     actor_sparse_deltas : (K', M, 3) mm, the actor's ground-truth shapes at the marker vertices, in
-    ``true_names`` order (defines which shapes the markers observe).
+    ``true_names`` order (defines which shapes the markers observe). path, truth_path : named in errors.
     """
-    a, b, shared = align_to_truth(np.asarray(weights, float), list(names), np.asarray(true_weights, float), true_names)
+    a, b, shared = align_to_truth(np.asarray(weights, float), list(names), np.asarray(true_weights, float), true_names,
+                                  path, truth_path)
     tn = [str(n) for n in true_names]
     obs_all = observable_shapes(actor_sparse_deltas)
     obs = np.array([obs_all[tn.index(n)] for n in shared])
@@ -128,8 +137,9 @@ def run_eval_retarget(weights_csv: str | os.PathLike, truth_npz: str | os.PathLi
     with np.load(truth_npz, allow_pickle=False) as z:
         tw = z["weights"].astype(np.float64)
         tn = [str(s) for s in z["shape_names"]]
+    align_to_truth(w, names, tw, tn, weights_csv, truth_npz)  # a clear error before the actor's rig is read
     actor = read_rig_npz(actor_rig).subset(tn)
-    m = retarget_metrics(w, names, tw, tn, actor.deltas[:, actor.marker_vertices])
+    m = retarget_metrics(w, names, tw, tn, actor.deltas[:, actor.marker_vertices], weights_csv, truth_npz)
     write_json(details_path, {"method": method, "character": character, **m})
     write_metrics_fragment(metrics_path, "retarget",
                            method_metrics(method, character, {k: m[k] for k in FRAGMENT_KEYS}, primary))

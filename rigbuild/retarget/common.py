@@ -48,6 +48,7 @@ def map_markers_to_vertices(
     InputError naming every marker that the character map lacks.
     """
     lookup = {str(n): int(v) for n, v in zip(map_names, np.asarray(map_vertices).reshape(-1))}
+    check_marker_overlap(marker_names, list(lookup), "the actor's marker set", source, character)
     missing = [n for n in marker_names if n not in lookup]
     if missing:
         raise InputError(
@@ -58,6 +59,26 @@ def map_markers_to_vertices(
             "markers from the take",
         )
     return np.array([lookup[n] for n in marker_names], dtype=np.int64)
+
+
+def _examples(names: Sequence[str], n: int = 4) -> str:
+    names = [str(x) for x in names]
+    return ", ".join(names[:n]) + (", ..." if len(names) > n else "")
+
+
+def check_marker_overlap(take_names: Sequence[str], map_names: Sequence[str], what: str = "the take",
+                         path: str | os.PathLike | None = None, character: str = "character") -> None:
+    """InputError (naming ``path``) when none of ``take_names`` is in the marker map's ``map_names``: the take
+    was captured with another marker naming than the character's map (e.g. an AnimFace take onto a
+    character mapped for the synthetic ICT marker set)."""
+    if set(map(str, take_names)) & set(map(str, map_names)):
+        return
+    raise InputError(
+        f"none of {what}'s {len(take_names)} marker names ({_examples(take_names)}) is in the marker map of "
+        f"'{character}' ({len(map_names)} markers: {_examples(map_names)})", path=path,
+        fix="retarget with a marker map made for this take's marker set (for AnimFace takes: "
+        "rigbuild/assets/marker_sets/animface_ict.json, or build one with "
+        "rigbuild.retarget.marker_maps.build_landmark_marker_map), or rename the take's markers to the map's")
 
 
 def character_sparse_blendshapes(rig: Rig, vertex_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -215,6 +236,30 @@ def batched_rigid_fit(
     D[:, 2, 2] = d
     R = U @ D @ Vt
     t = mu_d - np.einsum("fij,fj->fi", R, mu_s)
+    return R, t
+
+
+def bridge_rigid_motion(R: np.ndarray, t: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Head motion R (F, 3, 3), t (F, 3) with the frames where ``ok`` (F,) is False (too few markers for a
+    fit) bridged from the fitted ones: rotations by spherical linear interpolation, translations linearly,
+    the ends held at the nearest fitted frame. Needs at least one fitted frame. Returns new arrays."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    ok = np.asarray(ok, bool)
+    R = np.array(R, dtype=np.float64, copy=True)
+    t = np.array(t, dtype=np.float64, copy=True)
+    if ok.all():
+        return R, t
+    frames = np.arange(ok.size, dtype=np.float64)
+    known = np.flatnonzero(ok)
+    miss = np.flatnonzero(~ok)
+    for c in range(3):
+        t[miss, c] = np.interp(frames[miss], frames[known], t[known, c])
+    if known.size == 1:
+        R[miss] = R[known[0]]
+        return R, t
+    q = np.clip(frames[miss], frames[known[0]], frames[known[-1]])
+    R[miss] = Slerp(frames[known], Rotation.from_matrix(R[known]))(q).as_matrix()
     return R, t
 
 

@@ -69,9 +69,10 @@ from rigbuild.rig import Rig
 
 # ----------------------------------------------------------------------------- sec. 3.1 head motion
 def remove_head_motion(
-    markers: np.ndarray, neutral: np.ndarray, rigid_weights: np.ndarray | None = None
+    markers: np.ndarray, neutral: np.ndarray, rigid_weights: np.ndarray | None = None,
+    path: str | os.PathLike | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Procrustes head-motion removal (sec. 3.1).
+    """Procrustes head-motion removal (sec. 3.1), with occlusion gaps bridged.
 
     Parameters
     ----------
@@ -79,6 +80,12 @@ def remove_head_motion(
     neutral : (M, 3) mm, the source neutral pose ``Y`` (no NaN).
     rigid_weights : (M,) non-negative weight of each marker in the fit (e.g. 1 on forehead / nose
         markers, 0 on the lips), or None for all markers equally (the paper).
+    path : the take's file, for messages.
+
+    A frame where fewer than 3 markers of positive weight are visible is fitted on all its visible markers
+    (uniform weights); a frame with fewer than 3 visible markers at all gets the head motion bridged from
+    the fitted frames around it (:func:`rigbuild.retarget.common.bridge_rigid_motion`; a warning counts
+    them). Only a take with no frame of 3 visible markers is an :class:`InputError` (naming ``path``).
 
     Returns
     -------
@@ -89,20 +96,27 @@ def remove_head_motion(
     Y = np.asarray(neutral, dtype=np.float64)
     F, M, _ = X.shape
     if Y.shape != (M, 3) or not np.all(np.isfinite(Y)):
-        raise InputError(f"source neutral must be a finite ({M}, 3) array, got {Y.shape}")
-    from rigbuild.retarget.common import batched_rigid_fit
+        raise InputError(f"source neutral must be a finite ({M}, 3) array, got {Y.shape}", path=path)
+    from rigbuild.retarget.common import batched_rigid_fit, bridge_rigid_motion
 
     w = np.ones(M) if rigid_weights is None else np.asarray(rigid_weights, dtype=np.float64)
     valid = np.all(np.isfinite(X), axis=2)
     ok = valid & (w > 0)[None]
-    bad = np.flatnonzero(ok.sum(1) < 3)
-    if bad.size:
-        raise InputError(
-            f"frame {bad[0]}: only {int(ok[bad[0]].sum())} of the head-motion markers are visible (need 3)",
-            fix="fill the gaps in the take or give rigid_weights to markers that are visible in every frame",
-        )
+    wts = np.where(ok, w[None], 0.0)
+    fallback = (ok.sum(1) < 3) & (valid.sum(1) >= 3)
+    wts[fallback] = valid[fallback]
+    fitted = valid.sum(1) >= 3
+    if not fitted.any():
+        raise InputError(f"no frame of the take has 3 visible markers for the head-motion fit ({F} frames, "
+                         f"at most {int(valid.sum(1).max(initial=0))} visible)", path=path,
+                         fix="check the take's marker names against the character's marker map, or fill its gaps")
     # weighted Kabsch per frame (R Y + t ~ X), all frames at once
-    R, t = batched_rigid_fit(Y, np.where(ok[..., None], X, 0.0), np.where(ok, w[None], 0.0))
+    R, t = batched_rigid_fit(Y, np.where(wts[..., None] > 0, X, 0.0), wts)
+    if not fitted.all():
+        logging.getLogger("rigbuild.retarget.seol").warning(
+            "%s: %d frame(s) with fewer than 3 visible markers: head motion bridged from the frames around them",
+            path or "take", int((~fitted).sum()))
+        R, t = bridge_rigid_motion(R, t, fitted)
     stabilized = np.einsum("fji,fmj->fmi", R, X - t[:, None, :])
     return stabilized, R, t
 
@@ -388,16 +402,55 @@ def _solve_kronecker(Ldiag: np.ndarray, Loff: np.ndarray, G: np.ndarray, Pc: np.
     return y.reshape(K, nf).T @ U.T
 
 
+def solve_block_tridiagonal_free(diag: np.ndarray, upper: np.ndarray, rhs: np.ndarray,
+                                 free: np.ndarray) -> np.ndarray:
+    """:func:`solve_block_tridiagonal` over the ``free`` (n, K) variables only (the others 0; their known
+    values already moved to ``rhs``): block Thomas with per-frame blocks of the free variables' size, so a
+    bounded solve whose weights sit mostly at a bound pays for the free ones only. Returns (n, K)."""
+    n, K = rhs.shape
+    idx = [np.flatnonzero(free[t]) for t in range(n)]
+    Z: list[np.ndarray] = [np.zeros((0, 0))] * n
+    g: list[np.ndarray] = [np.zeros(0)] * n
+    for t in range(n):
+        i = idx[t]
+        if i.size == 0:
+            continue
+        D = diag[t][np.ix_(i, i)]
+        y = rhs[t, i]
+        if t > 0 and idx[t - 1].size:
+            O = upper[t - 1][np.ix_(idx[t - 1], i)]
+            D = D - O.T @ Z[t - 1]
+            y = y - O.T @ g[t - 1]
+        if t < n - 1:
+            sol = np.linalg.solve(D, np.column_stack([upper[t][np.ix_(i, idx[t + 1])], y]))
+            Z[t], g[t] = sol[:, :-1], sol[:, -1]
+        else:
+            g[t] = np.linalg.solve(D, y)
+    x = np.zeros((n, K))
+    x[n - 1, idx[n - 1]] = g[n - 1]
+    for t in range(n - 2, -1, -1):
+        if idx[t].size:
+            x[t, idx[t]] = g[t] - (Z[t] @ x[t + 1, idx[t + 1]] if idx[t + 1].size else 0.0)
+    return x
+
+
+#: below this fraction of free variables the pinned solve eliminates the pinned ones (else identity rows)
+REDUCED_FREE_FRACTION = 0.8
+
+
 def _solve_pinned_block_tridiagonal(A: np.ndarray, U: np.ndarray, rhs: np.ndarray, mask: np.ndarray,
                                     vals: np.ndarray) -> np.ndarray:
     """Solve the block tridiagonal system (diag ``A`` (n, K, K), upper ``U`` (n-1, K, K), ``rhs``
     (n, K)) with the variables where ``mask`` (n, K) is True fixed to ``vals``: their known values move
-    to the right-hand side and their rows become identity rows. Returns (n, K)."""
+    to the right-hand side; the free variables are solved by :func:`solve_block_tridiagonal_free` when
+    they are few, else the fixed rows become identity rows of the full solve. Returns (n, K)."""
     n = A.shape[0]
     r = rhs - np.einsum("tkl,tl->tk", A, vals)
     if n > 1:
         r[:-1] -= np.einsum("tkl,tl->tk", U, vals[1:])
         r[1:] -= np.einsum("tlk,tl->tk", U, vals[:-1])
+    if (~mask).mean() < REDUCED_FREE_FRACTION:
+        return np.where(mask, vals, solve_block_tridiagonal_free(A, U, r, ~mask))
     keep = 1.0 - mask.astype(np.float64)
     A = A * keep[:, :, None] * keep[:, None, :]
     ti, ki = np.nonzero(mask)
@@ -406,6 +459,28 @@ def _solve_pinned_block_tridiagonal(A: np.ndarray, U: np.ndarray, rhs: np.ndarra
         U = U * keep[:-1, :, None] * keep[1:, None, :]
     r = np.where(mask, vals, r)
     return solve_block_tridiagonal(A, U, r)
+
+
+def _block_jacobi_bounded(A: np.ndarray, U: np.ndarray, rhs: np.ndarray, W: np.ndarray, mask: np.ndarray,
+                          vals: np.ndarray, lo: float, hi: float, sweeps: int = 2) -> np.ndarray:
+    """Approximate bounded minimizer of the block tridiagonal energy ``1/2 w^T H w - rhs^T w`` from W (n, K):
+    ``sweeps`` block-Jacobi sweeps, each frame's box QP (its diagonal block, its neighbours' current
+    weights on the right-hand side) solved for all frames at once (:func:`rigbuild.retarget.ribera.bounded.box_qp`);
+    pinned entries (``mask``) keep ``vals``. Only a first guess of the active set for
+    :meth:`SeolSystem.solve_bounded`."""
+    from rigbuild.retarget.ribera.bounded import box_qp
+
+    n, K = W.shape
+    lo_a = np.where(mask, vals, lo)
+    hi_a = np.where(mask, vals, hi)
+    W = np.clip(np.where(mask, vals, W), lo_a, hi_a)
+    for _ in range(sweeps):
+        b = rhs.copy()
+        if n > 1:
+            b[:-1] -= np.einsum("tkl,tl->tk", U, W[1:])
+            b[1:] -= np.einsum("tlk,tl->tk", U, W[:-1])
+        W, _ = box_qp(A, b, lo_a, hi_a, passes=6, start=W)
+    return W
 
 
 def _frame_indices(frames: Sequence[int], n_frames: int, what: str) -> np.ndarray:
@@ -690,10 +765,16 @@ class SeolSystem:
                       stop: int | None = None) -> tuple[np.ndarray, int]:
         """:meth:`solve` with every free weight kept in ``bounds`` = (lo, hi) (not in the paper).
 
-        Primal active set: solve; pin each free weight outside the bounds at the bound it crossed and solve
-        again; once none is outside, release the bound pins whose Lagrange multiplier (the energy's
-        gradient, :meth:`gradient`) says the energy falls moving inside, and repeat; stop at a KKT point
-        or after ``max_iterations`` (then clipped). Each pass is the exact spacetime minimizer under its
+        Primal-dual active set (Hintermueller, Ito and Kunisch 2002): the first guess of the active set is
+        two bounded block-Jacobi sweeps from the unconstrained minimizer (:func:`_block_jacobi_bounded`);
+        each pass solves with the bound pins, keeps the pins whose Lagrange multiplier (the energy's
+        gradient, :meth:`gradient`) has the right sign and pins every free weight outside the bounds; it
+        stops when the sets no longer change (a KKT point). When a set repeats (the primal-dual passes can
+        cycle) the monotone primal method finishes: from a feasible point, step towards each pass's
+        solution up to the first bound crossed (pinning it), and at a feasible minimizer release the pins
+        whose multiplier has the wrong sign; the energy falls every pass, so it cannot cycle. After
+        ``max_iterations`` the weights are clipped. Each pass solves only the free weights
+        (:func:`solve_block_tridiagonal_free`). Each pass is the exact spacetime minimizer under its
         pins, so the movement matching is re-solved around the bound instead of being cut off as a clamp
         would. ``bounds`` defaults to the system's; ``start``/``stop`` as in :meth:`solve`.
         Returns (W (n, K) within bounds, passes).
@@ -708,26 +789,48 @@ class SeolSystem:
         if user.shape != quad[2].shape or np.shape(pin_values) != quad[2].shape:
             raise InputError(f"pins must be {quad[2].shape}, got {user.shape}")
         vals = np.where(user, np.asarray(pin_values, dtype=np.float64), 0.0)
-        at_lo = np.zeros_like(user)
-        at_hi = np.zeros_like(user)
-        W = None
+        W = _solve_pinned_block_tridiagonal(*quad, user, vals)  # the unconstrained minimizer
+        W = _block_jacobi_bounded(*quad, W, user, vals, lo, hi)  # a first guess of the active set
+        at_lo = ~user & (W <= lo)
+        at_hi = ~user & (W >= hi)
+        seen: set[bytes] = set()
+        primal = False
         for it in range(1, max_iterations + 1):
-            W = _solve_pinned_block_tridiagonal(*quad, user | at_lo | at_hi,
-                                                np.where(at_lo, lo, np.where(at_hi, hi, vals)))
-            free = ~(user | at_lo | at_hi)
-            below, above = free & (W < lo - tolerance), free & (W > hi + tolerance)
-            if below.any() or above.any():
-                at_lo |= below
-                at_hi |= above
-                continue
-            # release the bound pins whose multiplier has the wrong sign (the energy falls moving inside)
-            g = self.gradient(W, start, stop, quad)
+            fixed = user | at_lo | at_hi
+            W_new = _solve_pinned_block_tridiagonal(*quad, fixed, np.where(at_lo, lo, np.where(at_hi, hi, vals)))
+            g = self.gradient(W_new, start, stop, quad)
             scale = tolerance * max(1.0, float(np.abs(g).max()))
-            release = (at_lo & (g < -scale)) | (at_hi & (g > scale))
-            if not release.any():
+            free = ~fixed
+            below, above = free & (W_new < lo - tolerance), free & (W_new > hi + tolerance)
+            if not primal:
+                # primal-dual pass: keep a bound whose multiplier has the right sign, add every violator
+                new_lo = ~user & ((at_lo & (g >= -scale)) | below)
+                new_hi = ~user & ((at_hi & (g <= scale)) | above)
+                key = np.packbits(np.concatenate([new_lo, new_hi], axis=1)).tobytes()
+                if key in seen:  # the primal-dual passes cycle: finish with the monotone primal method
+                    primal = True
+                    W = np.clip(W_new, lo, hi)
+                    at_lo, at_hi = ~user & (W <= lo), ~user & (W >= hi)
+                    continue
+                seen.add(key)
+                W = W_new
+            elif below.any() or above.any():
+                # primal pass from the feasible W: step towards W_new up to the first bound it crosses
+                d = W_new - W
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    ratio = np.where(below, (lo - W) / d, np.where(above, (hi - W) / d, np.inf))
+                step = float(np.clip(ratio.min(), 0.0, 1.0))
+                W = np.clip(W + step * d, lo, hi)
+                block = (below | above) & (ratio <= step + 1e-12)
+                new_lo, new_hi = at_lo | (block & below), at_hi | (block & above)
+            else:
+                # feasible minimizer under the pins: release every pin whose multiplier has the wrong sign
+                W = W_new
+                new_lo = at_lo & ~(g < -scale)
+                new_hi = at_hi & ~(g > scale)
+            if np.array_equal(new_lo, at_lo) and np.array_equal(new_hi, at_hi) and not (below.any() or above.any()):
                 return W, it
-            at_lo &= ~release
-            at_hi &= ~release
+            at_lo, at_hi = new_lo, new_hi
         return np.clip(W, lo, hi), max_iterations + 1
 
     def solve_spacetime(self, boundary_frames: Sequence[int] = (0, -1),
@@ -975,6 +1078,7 @@ def retarget_seol(
     prior_training: np.ndarray | None = None,
     remove_head: bool = True,
     baselines: bool = True,
+    source_path: str | os.PathLike | None = None,
     **options,
 ) -> SeolResult:
     """Retarget a marker performance onto a blendshape target (Seol et al. 2012, all sections).
@@ -1026,6 +1130,12 @@ def retarget_seol(
         training set after the neutral and the one-shape-per-frame set; overrides ``prior_combinations``.
     remove_head : remove the head motion (sec. 3.1); False for head-stabilized markers.
     baselines : also compute the sec. 7 per-frame baselines and all velocity-error curves.
+    source_path : the take's file, named in errors and warnings.
+
+    Occlusion gaps: head motion is fitted on each frame's visible markers and bridged over frames with fewer
+    than 3 (:func:`remove_head_motion`); such frames' markers are then filled by interpolation in time
+    (:func:`bridge_sparse_frames`) so the movement matching stays connected across them; other gaps follow
+    ``gaps``.
 
     With ``weight_bounds`` or ``sparsity`` the spacetime solve is no longer the paper's: the "perframe_prior"
     baseline then gets the same bounds and sparsity (the comparison isolates the movement matching, as in
@@ -1039,13 +1149,11 @@ def retarget_seol(
     F, M, _ = X.shape
     K = d_star.shape[0]
     B = d_star.reshape(K, -1).T
-    R, t, stab = _stabilized(X, Y, B, d_star, p, remove_head)
+    R, t, stab = _stabilized(X, Y, B, d_star, p, remove_head, source_path)
+    stab = bridge_sparse_frames(stab, source_path)
     vis = np.all(np.isfinite(stab), axis=2)
     if vis.all():
         vis = None
-    elif np.any(vis.sum(1) == 0):
-        raise InputError(f"frame {int(np.flatnonzero(vis.sum(1) == 0)[0])} has no visible marker",
-                         fix="trim the frames without markers from the take")
     S = (stab - Y[None]).reshape(F, -1)
     src_pivot = Y.mean(0)
     head_d = head_motion_about_pivot(R, t, src_pivot)
@@ -1123,8 +1231,33 @@ def _matched_source_and_target(source_markers, target: Rig, marker_names, source
     return X, Y, n_tgt, d_star, warp
 
 
+def bridge_sparse_frames(stab: np.ndarray, path: str | os.PathLike | None = None,
+                         min_visible: int = 3) -> np.ndarray:
+    """Stabilized markers (F, M, 3) with every frame that has fewer than ``min_visible`` visible markers
+    filled by per-marker linear interpolation in time (:func:`fill_marker_gaps` on those frames only; a
+    marker never seen stays a gap). A warning counts the frames. Returns a new array (or ``stab`` itself)."""
+    vis = np.all(np.isfinite(stab), axis=2)
+    sparse = vis.sum(1) < min_visible
+    if not sparse.any():
+        return stab
+    if sparse.all():
+        raise InputError(f"no frame of the take has {min_visible} visible markers", path=path,
+                         fix="check the take's marker names against the character's marker map, or fill its gaps")
+    src = np.where(sparse[:, None, None], np.nan, stab)  # interpolate from the frames with enough markers
+    seen = np.all(np.isfinite(src), axis=2).any(0)
+    filled = fill_marker_gaps(src[:, seen])
+    out = np.array(stab, dtype=np.float64, copy=True)
+    sub = out[:, seen]
+    sub[sparse] = np.where(np.isfinite(sub[sparse]), sub[sparse], filled[sparse])
+    out[:, seen] = sub
+    logging.getLogger("rigbuild.retarget.seol").warning(
+        "%s: %d frame(s) with fewer than %d visible markers: markers interpolated in time over them",
+        path or "take", int(sparse.sum()), min_visible)
+    return out
+
+
 def _stabilized(X: np.ndarray, Y: np.ndarray, B: np.ndarray, d_star: np.ndarray, p: SeolParams,
-                remove_head: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                remove_head: bool, path: str | os.PathLike | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Head motion (sec. 3.1): R (F, 3, 3), t (F, 3) and the stabilized markers (F, M, 3)."""
     F = X.shape[0]
     if not remove_head:
@@ -1136,7 +1269,7 @@ def _stabilized(X: np.ndarray, Y: np.ndarray, B: np.ndarray, d_star: np.ndarray,
         from rigbuild.retarget.common import rigidity_weights
 
         rigid_weights = rigidity_weights(d_star)
-    _, R, t = remove_head_motion(X, Y, rigid_weights)
+    _, R, t = remove_head_motion(X, Y, rigid_weights, path)
     if int(p.head_refine_iterations) > 0:
         _, R, t = refine_head_motion(X, Y, B, R, t, rigid_weights, int(p.head_refine_iterations))
     return R, t, np.einsum("fji,fmj->fmi", R, X - t[:, None, :])

@@ -23,6 +23,7 @@ from rigbuild.io.markers import read_markers
 from rigbuild.io.metrics import write_metrics_fragment
 from rigbuild.io.rigs import read_rig_npz
 from rigbuild.params import as_dict
+from rigbuild.retarget.common import check_marker_overlap
 from rigbuild.retarget.methods import RIBERA_METHODS, method_metrics, seol_result_metrics
 from rigbuild.retarget.params import ribera_from_config, seol_from_config
 
@@ -71,6 +72,9 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
     if rig.marker_vertices.size == 0:
         raise InputError(f"character '{rig.name}' has no marker map", path=rig_path,
                          fix="build the character with the session's marker set")
+    check_marker_overlap(take.names, rig.marker_names, "the performance", performance, rig.name)
+    for f, t in zip(files, takes):
+        check_marker_overlap(t.names, rig.marker_names, "the training sequence", f, rig.name)
     res = retarget_performance(ts, take.markers, take.names, rig, rig.marker_names, rig.marker_vertices, method,
                                p.transfer_params(method), p.retarget_params(method),
                                allow_empty_frames=bool(p.allow_empty_frames), performance_path=performance,
@@ -130,13 +134,15 @@ def run_seol(performance: Path, rig_path: Path, neutral: Sequence[Path] | None, 
     t0 = time.perf_counter()
     take = read_markers(performance)
     rig = read_rig_npz(rig_path)
+    check_marker_overlap(take.names, rig.marker_names, "the performance", performance, rig.name)
     names = [n for n in rig.marker_names if n in set(take.names)]
     if len(names) < 4:
         raise InputError(f"only {len(names)} markers of the take are on character '{rig.name}'", path=performance,
                          fix="use a character marker map with the take's marker names")
     X = reorder_markers(take.markers, take.names, names, path=performance)
     Y = None if not neutral else seol_neutral([neutral] if isinstance(neutral, str) else neutral, neutral_frames, names)
-    res = retarget_seol(X, rig, marker_names=names, source_neutral=Y, params=p, fps=float(take.fps))
+    res = retarget_seol(X, rig, marker_names=names, source_neutral=Y, params=p, fps=float(take.fps),
+                        source_path=performance)
     seconds = time.perf_counter() - t0
     fps = take.fps
     write_weight_curves_csv(weights, res.weights, res.shape_names, fps)
