@@ -243,3 +243,15 @@ def test_pictures_are_embedded_downscaled_as_jpeg(tmp_path):
     page = build_report(tmp_path, "s1", {"calibration": {"rms_px": 0.1}}, image_width=400)
     assert page.count("data:image/jpeg;base64,") == 1 and "data:image/png" not in page
     assert "calib/residuals.png</figcaption>" in _section(page, "calibration")
+
+
+def test_a_gate_measured_without_a_limit_is_shown_but_judges_nothing(tmp_path):
+    flat = {"reconstruction.stereo_consistency_mm": 0.2, "reconstruction.sequences.rom00.frames": 9}
+    rows, verdict = summarize(flat)
+    rec = next(r for r in rows if r.stage.id == "reconstruction")
+    assert rec.status == "" and rec.number.key == "reconstruction.stereo_consistency_mm" and rec.number.rule is None
+    assert verdict == ""
+    page = build_report(tmp_path, "s1", _nest(flat))
+    assert '<span class="badge none">session not measured</span>' in page
+    assert ('<tr><td>stereo_consistency_mm</td><td class="num ">0.2</td><td><span class="badge none">no limit</span>'
+            in _section(page, "reconstruction"))

@@ -128,7 +128,8 @@ def _judged_table(judged: Sequence[Judged], missing: Sequence[str], prefix: str,
     if not judged and not missing:
         return ""
     rows = [f'<tr><td>{html.escape(_short(j.key, prefix))}</td><td class="num {j.status}">{fmt(j.value)}</td>'
-            f"<td>{_badge(j.status)}</td><td>{html.escape(limits_text(j.rule, '≤', '≥'))}</td></tr>" for j in judged]
+            f"<td>{_badge(j.status, None if j.status else 'no limit')}</td>"
+            f"<td>{html.escape(limits_text(j.rule, '≤', '≥'))}</td></tr>" for j in judged]
     rows += [f"<tr><td>{html.escape(_short(k, prefix))}</td><td><em>not measured</em></td><td></td><td></td></tr>"
              for k in missing]
     return (f'<table class="judged"><tr><th>{title}</th><th>value</th><th>status</th><th>limit</th></tr>'
