@@ -13,12 +13,16 @@ STAMP := $(VENV)/.installed
 DEB_PACKAGES := libusb-1.0-0 libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libx11-6
 # The test suite also opens the HTML report in headless Chromium (the test skips when it is absent).
 TEST_DEB_PACKAGES := chromium
+# The SLURM test (tests/test_cluster_slurm.py) starts a one-node cluster on this machine from these packages
+# (tests/cluster/slurm_up.sh) and submits through the plugin of pyproject's `cluster` extra.
+CLUSTER_DEB_PACKAGES := slurm-wlm munge slurmdbd mariadb-server
+CLUSTER_STAMP := $(VENV)/.cluster-installed
 CORES ?= 2
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: demo test setup system-deps bench lint clean unlock
+.PHONY: demo test setup system-deps bench lint clean unlock cluster-deps
 
 # --rerun-incomplete: after Ctrl-C the jobs that were running are redone; every job writes its outputs
 # atomically (rigbuild.io.atomic), so an interrupted job leaves nothing half-written to keep.
@@ -31,6 +35,7 @@ unlock:
 
 test: setup
 	@$(MAKE) --no-print-directory system-deps DEB_PACKAGES="$(TEST_DEB_PACKAGES)" || echo "warning: Chromium not installed; the report screenshot test will skip"
+	@$(MAKE) --no-print-directory cluster-deps || echo "warning: SLURM or the slurm plugin not installed; the SLURM cluster test will skip"
 	@set +e; $(PY) -m pytest $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests (exit 5) - treated as failure"; exit 1; fi; exit $$rc
 
@@ -58,6 +63,16 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip check
 	$(PY) -m rigbuild.assets.face_models install
 	touch $(STAMP)
+
+# SLURM, munge, slurmdbd's database and snakemake-executor-plugin-slurm, for tests/test_cluster_slurm.py
+cluster-deps: setup
+	@$(MAKE) --no-print-directory system-deps DEB_PACKAGES="$(CLUSTER_DEB_PACKAGES)"
+	@$(MAKE) --no-print-directory $(CLUSTER_STAMP)
+
+$(CLUSTER_STAMP): pyproject.toml $(STAMP)
+	$(PY) -m pip install -q -e '.[cluster]'
+	$(PY) -m pip check
+	touch $@
 
 bench: setup
 	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done
