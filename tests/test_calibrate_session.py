@@ -223,7 +223,7 @@ def test_rms_gate_writes_every_output_with_status_fail_then_fails(session, tmp_p
         for rel in OUTPUT_FILES:
             assert (out / folder / rel).stat().st_size > 0, (folder, rel)
     m = read_metrics(out / "calib_diagnostics" / "calib_metrics.json")["calibration"]
-    assert m["status"] == "fail" and "RMS above params.calibrate.max_rms_px" in m["gate"]
+    assert m["status"] == "fail" and "RMS above params.calibrate.max_rms_px" in m["gate"] and m["n_gate_failures"] == 1
     rows = (out / "calib" / "reprojection_per_image.csv").read_text().strip().splitlines()
     assert len(rows) == 1 + 4 * 12
     warned = run_calibrate(session[0], tmp_path / "warn" / "calib", {"max_rms_px": 0.03, "gate": "warn"})

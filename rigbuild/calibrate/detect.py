@@ -8,6 +8,7 @@ naming the file.
 
 from __future__ import annotations
 
+import itertools
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -132,8 +133,8 @@ def detect_chessboard(gray: np.ndarray, board: BoardSpec, subpix_window: int | N
     if not found:
         return Detection(np.zeros(0, np.int64), np.zeros((0, 2)))
     corners = corners.reshape(-1, 2).astype(np.float64)
-    a, b = corners[1 % corners.shape[0]] - corners[0], corners[min(nx, corners.shape[0] - 1)] - corners[0]
-    if nx > 1 and ny > 1 and a[0] * b[1] - a[1] * b[0] < 0:
+    a, b = corners[1] - corners[0], corners[nx] - corners[0]  # along a row, to the next row (squares >= 3)
+    if a[0] * b[1] - a[1] * b[0] < 0:
         corners = corners.reshape(ny, nx, 2)[:, ::-1].reshape(-1, 2).copy()
     if corners[0].sum() > corners[-1].sum():
         corners = corners[::-1].copy()
@@ -165,18 +166,20 @@ def board_variants(board: BoardSpec) -> list[tuple[str, BoardSpec]]:
     the other print polarity, the other ChArUco layout, x and y swapped, squares counted as inner corners."""
     out: list[tuple[str, BoardSpec]] = []
     if board.type == "charuco":
-        pol = [] if board.inverted == "auto" else [(f"inverted: {str(not board.inverted).lower()}",
-                                                     not board.inverted)]
-        for leg in (board.legacy_pattern, not board.legacy_pattern):
-            for swap in (False, True):
-                for pol_text, inv in [("", board.inverted)] + pol:
-                    changes = [t for t in (pol_text, f"legacy_pattern: {str(leg).lower()}" if leg != board.legacy_pattern
-                                           else "", f"squares_x: {board.squares_y}, squares_y: {board.squares_x}"
-                                           if swap else "") if t]
-                    if changes:
-                        sx, sy = (board.squares_y, board.squares_x) if swap else (board.squares_x, board.squares_y)
-                        out.append((", ".join(changes), replace(board, squares_x=sx, squares_y=sy, inverted=inv,
-                                                                legacy_pattern=leg)))
+        polarities = [board.inverted] + ([] if board.inverted == "auto" else [not board.inverted])
+        layouts = (board.legacy_pattern, not board.legacy_pattern)
+        for legacy, swap, inverted in itertools.product(layouts, (False, True), polarities):
+            changes = []
+            if inverted != board.inverted:
+                changes.append(f"inverted: {str(inverted).lower()}")
+            if legacy != board.legacy_pattern:
+                changes.append(f"legacy_pattern: {str(legacy).lower()}")
+            if swap:
+                changes.append(f"squares_x: {board.squares_y}, squares_y: {board.squares_x}")
+            if changes:
+                sx, sy = (board.squares_y, board.squares_x) if swap else (board.squares_x, board.squares_y)
+                out.append((", ".join(changes), replace(board, squares_x=sx, squares_y=sy, inverted=inverted,
+                                                        legacy_pattern=legacy)))
     else:
         out.append((f"squares_x: {board.squares_x + 1}, squares_y: {board.squares_y + 1} (squares, not inner "
                     "corners)", replace(board, squares_x=board.squares_x + 1, squares_y=board.squares_y + 1)))

@@ -128,7 +128,8 @@ def plausibility_flags(cameras: Sequence, board_poses: Mapping[str, int], min_bo
             flags.append(f"fx {K[0, 0]:.0f} and fy {K[1, 1]:.0f} px differ by {ratio_pct:.1f} % (> {max_aspect_pct:g} %)")
         if distortion_folds(K, cam.dist, w, h):
             flags.append(f"distortion folds the image inside its frame (k1 {cam.dist[0]:.3g}, k2 {cam.dist[1]:.3g}, "
-                         f"k3 {cam.dist[4]:.3g})")
+                         f"k3 {cam.dist[4]:.3g}): beyond the board's reach the model is not valid; show the "
+                         "board near the image corners, or fix_k3")
         n = board_poses.get(cam.id, 0)
         if n < min_board_poses:
             flags.append(f"seen in {n} board poses (< params.calibrate.min_board_poses = {min_board_poses})")

@@ -234,6 +234,7 @@ def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
     m = {
         "status": result.status,
         "gate": "; ".join(f.splitlines()[0] for f in result.gate_failures) or None,
+        "n_gate_failures": len(result.gate_failures),
         "rms_px": result.rms_px,
         "max_camera_rms_px": max(cam_rms.values()),
         "camera_rms_px": cam_rms,
