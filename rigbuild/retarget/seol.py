@@ -53,7 +53,7 @@ import scipy.linalg
 from scipy.linalg import lapack
 
 from rigbuild.errors import InputError
-from rigbuild.retarget.common import lowpass_markers
+from rigbuild.retarget.common import bridge_rigid_motion, lowpass_markers
 from rigbuild.retarget.params import (  # noqa: F401  (the paper's defaults, re-exported)
     DEFAULT_ALPHA,
     DEFAULT_ALPHA_PERFRAME,
@@ -70,7 +70,7 @@ from rigbuild.rig import Rig
 # ----------------------------------------------------------------------------- sec. 3.1 head motion
 def remove_head_motion(
     markers: np.ndarray, neutral: np.ndarray, rigid_weights: np.ndarray | None = None,
-    path: str | os.PathLike | None = None,
+    path: str | os.PathLike | None = None, min_visible: int = 3,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Procrustes head-motion removal (sec. 3.1), with occlusion gaps bridged.
 
@@ -81,10 +81,11 @@ def remove_head_motion(
     rigid_weights : (M,) non-negative weight of each marker in the fit (e.g. 1 on forehead / nose
         markers, 0 on the lips), or None for all markers equally (the paper).
     path : the take's file, for messages.
+    min_visible : a frame needs this many visible markers (at least 3) for its own fit.
 
     A frame where fewer than 3 markers of positive weight are visible is fitted on all its visible markers
-    (uniform weights); a frame with fewer than 3 visible markers at all gets the head motion bridged from
-    the fitted frames around it (:func:`rigbuild.retarget.common.bridge_rigid_motion`; a warning counts
+    (uniform weights); a frame with fewer than ``min_visible`` visible markers gets the head motion bridged
+    from the fitted frames around it (:func:`rigbuild.retarget.common.bridge_rigid_motion`; a warning counts
     them). Only a take with no frame of 3 visible markers is an :class:`InputError` (naming ``path``).
 
     Returns
@@ -97,7 +98,7 @@ def remove_head_motion(
     F, M, _ = X.shape
     if Y.shape != (M, 3) or not np.all(np.isfinite(Y)):
         raise InputError(f"source neutral must be a finite ({M}, 3) array, got {Y.shape}", path=path)
-    from rigbuild.retarget.common import batched_rigid_fit, bridge_rigid_motion
+    from rigbuild.retarget.common import batched_rigid_fit
 
     w = np.ones(M) if rigid_weights is None else np.asarray(rigid_weights, dtype=np.float64)
     valid = np.all(np.isfinite(X), axis=2)
@@ -105,17 +106,18 @@ def remove_head_motion(
     wts = np.where(ok, w[None], 0.0)
     fallback = (ok.sum(1) < 3) & (valid.sum(1) >= 3)
     wts[fallback] = valid[fallback]
-    fitted = valid.sum(1) >= 3
+    fitted = valid.sum(1) >= max(3, int(min_visible))
     if not fitted.any():
-        raise InputError(f"no frame of the take has 3 visible markers for the head-motion fit ({F} frames, "
+        raise InputError(f"no frame of the take has {max(3, int(min_visible))} visible markers for the head-motion "
+                         f"fit ({F} frames, "
                          f"at most {int(valid.sum(1).max(initial=0))} visible)", path=path,
                          fix="check the take's marker names against the character's marker map, or fill its gaps")
     # weighted Kabsch per frame (R Y + t ~ X), all frames at once
     R, t = batched_rigid_fit(Y, np.where(wts[..., None] > 0, X, 0.0), wts)
     if not fitted.all():
         logging.getLogger("rigbuild.retarget.seol").warning(
-            "%s: %d frame(s) with fewer than 3 visible markers: head motion bridged from the frames around them",
-            path or "take", int((~fitted).sum()))
+            "%s: %d frame(s) with fewer than %d visible markers: head motion bridged from the frames around them",
+            path or "take", int((~fitted).sum()), max(3, int(min_visible)))
         R, t = bridge_rigid_motion(R, t, fitted)
     stabilized = np.einsum("fji,fmj->fmi", R, X - t[:, None, :])
     return stabilized, R, t
@@ -1133,7 +1135,8 @@ def retarget_seol(
     source_path : the take's file, named in errors and warnings.
 
     Occlusion gaps: head motion is fitted on each frame's visible markers and bridged over frames with fewer
-    than 3 (:func:`remove_head_motion`); such frames' markers are then filled by interpolation in time
+    than half of them (:func:`min_visible_markers`, :func:`remove_head_motion`); such frames' markers are
+    then filled by interpolation in time
     (:func:`bridge_sparse_frames`) so the movement matching stays connected across them; other gaps follow
     ``gaps``.
 
@@ -1150,7 +1153,7 @@ def retarget_seol(
     K = d_star.shape[0]
     B = d_star.reshape(K, -1).T
     R, t, stab = _stabilized(X, Y, B, d_star, p, remove_head, source_path)
-    stab = bridge_sparse_frames(stab, source_path)
+    stab = bridge_sparse_frames(stab, source_path, min_visible_markers(M))
     vis = np.all(np.isfinite(stab), axis=2)
     if vis.all():
         vis = None
@@ -1231,6 +1234,17 @@ def _matched_source_and_target(source_markers, target: Rig, marker_names, source
     return X, Y, n_tgt, d_star, warp
 
 
+#: a frame with fewer than this fraction of the markers visible is bridged (head motion and markers
+#: interpolated in time): a few markers neither fix a head pose nor observe the shapes
+MIN_VISIBLE_FRACTION = 0.5
+
+
+def min_visible_markers(n_markers: int) -> int:
+    """Visible markers a frame needs for its own head-motion fit and movement matching:
+    ``max(3, ceil(MIN_VISIBLE_FRACTION * M))``."""
+    return max(3, int(np.ceil(MIN_VISIBLE_FRACTION * n_markers)))
+
+
 def bridge_sparse_frames(stab: np.ndarray, path: str | os.PathLike | None = None,
                          min_visible: int = 3) -> np.ndarray:
     """Stabilized markers (F, M, 3) with every frame that has fewer than ``min_visible`` visible markers
@@ -1269,9 +1283,12 @@ def _stabilized(X: np.ndarray, Y: np.ndarray, B: np.ndarray, d_star: np.ndarray,
         from rigbuild.retarget.common import rigidity_weights
 
         rigid_weights = rigidity_weights(d_star)
-    _, R, t = remove_head_motion(X, Y, rigid_weights, path)
+    need = min_visible_markers(X.shape[1])
+    _, R, t = remove_head_motion(X, Y, rigid_weights, path, need)
     if int(p.head_refine_iterations) > 0:
         _, R, t = refine_head_motion(X, Y, B, R, t, rigid_weights, int(p.head_refine_iterations))
+        # frames with too few markers keep the bridged head motion (their refinement is underdetermined)
+        R, t = bridge_rigid_motion(R, t, np.all(np.isfinite(X), axis=2).sum(1) >= need)
     return R, t, np.einsum("fji,fmj->fmi", R, X - t[:, None, :])
 
 
