@@ -295,3 +295,23 @@ def test_heldout_reprojection_of_triangulated_corners():
     # 0.1 px noise per coordinate; triangulation absorbs some: between 0.05 and 0.15 px RMS (2-D)
     assert 0.05 < h["rms_px"] < 0.15 and set(h["camera_rms_px"]) == {c.id for c in cams}
     assert abs(h["scale_deviation_pct"]) < 0.05
+
+
+def test_heldout_chessboard_views_numbered_from_the_other_end():
+    """A chessboard held-out view one camera numbers from the other end is renumbered as the pose graph
+    decided before triangulating (else its corners would pair with the wrong ones)."""
+    from rigbuild.calibrate.detect import Detection
+    from rigbuild.calibrate.session import consistent_labels
+
+    chess = BoardSpec("chessboard", 8, 6, 20.0)
+    cams = arc_rig(3, 640, 480, focal_px=800, distance_mm=450, azimuth_deg=60, seed=11)
+    poses = random_board_poses(8, chess, seed=12, max_tilt_deg=30, spread_mm=30)
+    det = simulate_detections(cams, chess, poses, noise_px=0.0, margin_px=-1e9)
+    n = len(chess.corner_points()[0])
+    for v in ("3", "6"):
+        d = det["cam01"][v]
+        det["cam01"][v] = Detection(n - 1 - d.ids[::-1], d.corners[::-1])
+    res = calibrate_rig(det, chess, (640, 480), CalibrationOptions(min_images=4))
+    pts = chess.corner_points()[0]
+    assert heldout_errors(res.cameras, det, ["3"], pts)["rms_px"] > 10
+    assert heldout_errors(res.cameras, consistent_labels(det, res), ["3"], pts)["rms_px"] < 1e-6

@@ -28,8 +28,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from rigbuild.calibrate.detect import (count_corners, describe_board, detect_board, detect_images, diagnose_board,
-                                      is_usable, read_gray, session_images)
+from rigbuild.calibrate.detect import (Detection, count_corners, describe_board, detect_board, detect_images,
+                                      diagnose_board, is_usable, read_gray, session_images)
 from rigbuild.calibrate.heldout import heldout_errors, split_views
 from rigbuild.calibrate.intrinsics import calibrate_intrinsics, calibration_flags, given_intrinsics
 from rigbuild.calibrate.params import CalibrationOptions, from_config
@@ -92,6 +92,16 @@ def known_intrinsics(spec: SessionSpec, params: CalibrationOptions) -> dict[str,
     return out
 
 
+def consistent_labels(detections: Mapping[str, Mapping[str, Detection]], result: RigCalibration
+                      ) -> dict[str, dict[str, Detection]]:
+    """Detections with the corner numbering the pose graph chose for each (camera, view): a chessboard
+    seen turned by 180 degrees in one camera is renumbered (``result.graph.flipped``), so that a corner id
+    names one physical corner in every camera (ChArUco: unchanged)."""
+    n = len(result.board_points)
+    return {c: {v: Detection(n - 1 - d.ids, d.corners) if v in result.graph.flipped.get(c, []) else d
+                for v, d in views.items()} for c, views in detections.items()}
+
+
 def calibrate_session(session_dir: str | os.PathLike, params: CalibrationOptions | Mapping | None = None
                       ) -> tuple[SessionSpec, RigCalibration]:
     """Detect the board in every calibration image of a session and calibrate the rig.
@@ -122,7 +132,8 @@ def calibrate_session(session_dir: str | os.PathLike, params: CalibrationOptions
         try:
             sub = {c: {v: d for v, d in views.items() if v not in held} for c, views in detections.items()}
             fit = calibrate_rig(sub, spec.board, (spec.width, spec.height), params, known=known, raise_gate=False)
-            result.heldout = heldout_errors(fit.cameras, detections, held, result.board_points)
+            result.heldout = heldout_errors(fit.cameras, consistent_labels(detections, result), held,
+                                            result.board_points)
             result.heldout["n_views_fitted"] = len(fitted)
         except QualityGateError as exc:
             result.heldout = {"error": f"no held-out fit without {len(held)} board poses: {exc}"}
