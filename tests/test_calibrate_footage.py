@@ -315,3 +315,4 @@ def test_heldout_chessboard_views_numbered_from_the_other_end():
     pts = chess.corner_points()[0]
     assert heldout_errors(res.cameras, det, ["3"], pts)["rms_px"] > 10
     assert heldout_errors(res.cameras, consistent_labels(det, res), ["3"], pts)["rms_px"] < 1e-6
+

@@ -135,7 +135,7 @@ def calibrate_session(session_dir: str | os.PathLike, params: CalibrationOptions
             result.heldout = heldout_errors(fit.cameras, consistent_labels(detections, result), held,
                                             result.board_points)
             result.heldout["n_views_fitted"] = len(fitted)
-        except QualityGateError as exc:
+        except (QualityGateError, InputError) as exc:  # too few views left for some camera: reported, not fatal
             result.heldout = {"error": f"no held-out fit without {len(held)} board poses: {exc}"}
     result.seconds["detect"] = t_detect
     result.seconds["total"] = time.perf_counter() - t0
