@@ -407,27 +407,33 @@ def _solve_kronecker(Ldiag: np.ndarray, Loff: np.ndarray, G: np.ndarray, Pc: np.
 def solve_block_tridiagonal_free(diag: np.ndarray, upper: np.ndarray, rhs: np.ndarray,
                                  free: np.ndarray) -> np.ndarray:
     """:func:`solve_block_tridiagonal` over the ``free`` (n, K) variables only (the others 0; their known
-    values already moved to ``rhs``): block Thomas with per-frame blocks of the free variables' size, so a
-    bounded solve whose weights sit mostly at a bound pays for the free ones only. Returns (n, K)."""
+    values already moved to ``rhs``): block Thomas (block Cholesky, LAPACK ``posv`` per frame) with per-frame
+    blocks of the free variables' size, so a bounded solve whose weights sit mostly at a bound pays for the
+    free ones only. Returns (n, K)."""
     n, K = rhs.shape
     idx = [np.flatnonzero(free[t]) for t in range(n)]
     Z: list[np.ndarray] = [np.zeros((0, 0))] * n
     g: list[np.ndarray] = [np.zeros(0)] * n
+    posv = lapack.dposv
     for t in range(n):
         i = idx[t]
-        if i.size == 0:
+        m = i.size
+        if m == 0:
             continue
-        D = diag[t][np.ix_(i, i)]
-        y = rhs[t, i]
-        if t > 0 and idx[t - 1].size:
-            O = upper[t - 1][np.ix_(idx[t - 1], i)]
+        D = diag[t][i[:, None], i]
+        nxt = idx[t + 1] if t < n - 1 else i[:0]
+        rhs_t = np.empty((m, nxt.size + 1))
+        rhs_t[:, :-1] = upper[t][i[:, None], nxt] if nxt.size else 0.0
+        rhs_t[:, -1] = rhs[t, i]
+        prev = idx[t - 1] if t > 0 else i[:0]
+        if prev.size:
+            O = upper[t - 1][prev[:, None], i]
             D = D - O.T @ Z[t - 1]
-            y = y - O.T @ g[t - 1]
-        if t < n - 1:
-            sol = np.linalg.solve(D, np.column_stack([upper[t][np.ix_(i, idx[t + 1])], y]))
-            Z[t], g[t] = sol[:, :-1], sol[:, -1]
-        else:
-            g[t] = np.linalg.solve(D, y)
+            rhs_t[:, -1] -= O.T @ g[t - 1]
+        _, sol, info = posv(D, rhs_t, lower=1)
+        if info != 0:
+            sol = np.linalg.solve(D, rhs_t)  # not positive definite to working precision: LU
+        Z[t], g[t] = sol[:, :-1], sol[:, -1]
     x = np.zeros((n, K))
     x[n - 1, idx[n - 1]] = g[n - 1]
     for t in range(n - 2, -1, -1):
@@ -463,26 +469,16 @@ def _solve_pinned_block_tridiagonal(A: np.ndarray, U: np.ndarray, rhs: np.ndarra
     return solve_block_tridiagonal(A, U, r)
 
 
-def _block_jacobi_bounded(A: np.ndarray, U: np.ndarray, rhs: np.ndarray, W: np.ndarray, mask: np.ndarray,
-                          vals: np.ndarray, lo: float, hi: float, sweeps: int = 2) -> np.ndarray:
-    """Approximate bounded minimizer of the block tridiagonal energy ``1/2 w^T H w - rhs^T w`` from W (n, K):
-    ``sweeps`` block-Jacobi sweeps, each frame's box QP (its diagonal block, its neighbours' current
-    weights on the right-hand side) solved for all frames at once (:func:`rigbuild.retarget.ribera.bounded.box_qp`);
-    pinned entries (``mask``) keep ``vals``. Only a first guess of the active set for
-    :meth:`SeolSystem.solve_bounded`."""
-    from rigbuild.retarget.ribera.bounded import box_qp
+#: a primal-dual pass that changes the active set in fewer than this fraction of the frames is followed by
+#: local passes over those frames and ``LOCAL_PASS_HALO`` frames around them (then a global pass checks)
+LOCAL_PASS_FRACTION = 0.1
+LOCAL_PASS_HALO = 10
 
-    n, K = W.shape
-    lo_a = np.where(mask, vals, lo)
-    hi_a = np.where(mask, vals, hi)
-    W = np.clip(np.where(mask, vals, W), lo_a, hi_a)
-    for _ in range(sweeps):
-        b = rhs.copy()
-        if n > 1:
-            b[:-1] -= np.einsum("tkl,tl->tk", U, W[1:])
-            b[1:] -= np.einsum("tlk,tl->tk", U, W[:-1])
-        W, _ = box_qp(A, b, lo_a, hi_a, passes=6, start=W)
-    return W
+
+def _dilate_frames(frames: np.ndarray, halo: int) -> np.ndarray:
+    """(n,) bool: ``frames`` (n,) bool grown by ``halo`` frames on each side."""
+    c = np.convolve(frames.astype(np.int64), np.ones(2 * halo + 1, dtype=np.int64))  # length n + 2 halo
+    return c[halo:halo + frames.size] > 0
 
 
 def _frame_indices(frames: Sequence[int], n_frames: int, what: str) -> np.ndarray:
@@ -767,11 +763,12 @@ class SeolSystem:
                       stop: int | None = None) -> tuple[np.ndarray, int]:
         """:meth:`solve` with every free weight kept in ``bounds`` = (lo, hi) (not in the paper).
 
-        Primal-dual active set (Hintermueller, Ito and Kunisch 2002): the first guess of the active set is
-        two bounded block-Jacobi sweeps from the unconstrained minimizer (:func:`_block_jacobi_bounded`);
-        each pass solves with the bound pins, keeps the pins whose Lagrange multiplier (the energy's
+        Primal-dual active set (Hintermueller, Ito and Kunisch 2002): from the unconstrained minimizer's
+        violations, each pass solves with the bound pins, keeps the pins whose Lagrange multiplier (the energy's
         gradient, :meth:`gradient`) has the right sign and pins every free weight outside the bounds; it
-        stops when the sets no longer change (a KKT point). When a set repeats (the primal-dual passes can
+        stops when a global pass no longer changes the sets (a KKT point). A pass that changes the sets in
+        few frames is followed by local passes over those frames (:data:`LOCAL_PASS_FRACTION`; the other
+        frames keep their weights) until they settle, then a global pass checks. When a set repeats (the primal-dual passes can
         cycle) the monotone primal method finishes: from a feasible point, step towards each pass's
         solution up to the first bound crossed (pinning it), and at a feasible minimizer release the pins
         whose multiplier has the wrong sign; the energy falls every pass, so it cannot cycle. After
@@ -791,15 +788,20 @@ class SeolSystem:
         if user.shape != quad[2].shape or np.shape(pin_values) != quad[2].shape:
             raise InputError(f"pins must be {quad[2].shape}, got {user.shape}")
         vals = np.where(user, np.asarray(pin_values, dtype=np.float64), 0.0)
-        W = _solve_pinned_block_tridiagonal(*quad, user, vals)  # the unconstrained minimizer
-        W = _block_jacobi_bounded(*quad, W, user, vals, lo, hi)  # a first guess of the active set
-        at_lo = ~user & (W <= lo)
-        at_hi = ~user & (W >= hi)
+        W = _solve_pinned_block_tridiagonal(*quad, user, vals)  # the unconstrained minimizer: first guess
+        at_lo = ~user & (W < lo)
+        at_hi = ~user & (W > hi)
         seen: set[bytes] = set()
         primal = False
+        window = None  # frames of a local pass (None: a global pass)
         for it in range(1, max_iterations + 1):
             fixed = user | at_lo | at_hi
-            W_new = _solve_pinned_block_tridiagonal(*quad, fixed, np.where(at_lo, lo, np.where(at_hi, hi, vals)))
+            v = np.where(at_lo, lo, np.where(at_hi, hi, vals))
+            if window is None:
+                W_new = _solve_pinned_block_tridiagonal(*quad, fixed, v)
+            else:  # local pass: the frames outside the window keep their weights
+                out = np.broadcast_to(~window[:, None], fixed.shape)
+                W_new = _solve_pinned_block_tridiagonal(*quad, fixed | out, np.where(out, W, v))
             g = self.gradient(W_new, start, stop, quad)
             scale = tolerance * max(1.0, float(np.abs(g).max()))
             free = ~fixed
@@ -808,14 +810,32 @@ class SeolSystem:
                 # primal-dual pass: keep a bound whose multiplier has the right sign, add every violator
                 new_lo = ~user & ((at_lo & (g >= -scale)) | below)
                 new_hi = ~user & ((at_hi & (g <= scale)) | above)
-                key = np.packbits(np.concatenate([new_lo, new_hi], axis=1)).tobytes()
-                if key in seen:  # the primal-dual passes cycle: finish with the monotone primal method
-                    primal = True
-                    W = np.clip(W_new, lo, hi)
-                    at_lo, at_hi = ~user & (W <= lo), ~user & (W >= hi)
-                    continue
-                seen.add(key)
+                if window is not None:
+                    new_lo = np.where(window[:, None], new_lo, at_lo)
+                    new_hi = np.where(window[:, None], new_hi, at_hi)
+                changed = ((new_lo != at_lo) | (new_hi != at_hi)).any(1)
                 W = W_new
+                if not changed.any():
+                    if window is None:
+                        return W, it  # a global pass with no change: a KKT point
+                    window = None  # the local passes settled: verify with a global pass
+                    continue
+                key = np.packbits(np.concatenate([new_lo, new_hi], axis=1)).tobytes()
+                if window is None:
+                    if key in seen:  # the primal-dual passes cycle: finish with the monotone primal method
+                        primal = True
+                        W = np.clip(W_new, lo, hi)
+                        at_lo, at_hi = ~user & (W <= lo), ~user & (W >= hi)
+                        continue
+                    seen.add(key)
+                    seen_local: set[bytes] = set()
+                elif key in seen_local:  # the local passes cycle: back to global passes
+                    window = None
+                    at_lo, at_hi = new_lo, new_hi
+                    continue
+                seen_local.add(key)
+                # few frames changed: the next passes re-solve only around them
+                window = _dilate_frames(changed, LOCAL_PASS_HALO) if changed.mean() < LOCAL_PASS_FRACTION else None
             elif below.any() or above.any():
                 # primal pass from the feasible W: step towards W_new up to the first bound it crosses
                 d = W_new - W
