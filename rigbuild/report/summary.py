@@ -38,8 +38,11 @@ STAGES = (
     Stage("personalization", "Personalization", "personalization",
           ("personalization.heldout_residual_final_mm", "personalization.residual_final_mm",
            "personalization.residual_reduction", "personalization.heldout_residual_reduction")),
+    # retargeting's stage writes neither gate yet: the marker residual of the solve and the plausibility
+    # numbers of rigbuild.retarget.plausible (antagonist pairs active together)
     Stage("retargeting", "Retargeting", "retarget",
-          ("retarget.ribera.*.marker_residual_mm", "retarget.seol.*.marker_residual_mm")),
+          ("retarget.ribera.*.marker_residual_mm", "retarget.seol.*.marker_residual_mm",
+           "retarget.ribera.*.antagonist_fraction", "retarget.seol.*.antagonist_fraction")),
 )
 
 
