@@ -1,9 +1,11 @@
 """Level 1 (face features): painted-dot detection, multi-view triangulation and lifting with depth maps.
 
-The paper initializes with a 68-point facial landmark predictor; no such model can be obtained here, so
-the coarse level uses painted marker dots (the synthetic sessions paint them at the rig's marker vertices;
-real sessions paint dots on the actor): dark, colourless discs on skin, which are detected as connected
-components of pixels much darker than their neighbourhood and nearly grey (skin and speckle are reddish).
+The paper initializes with a facial landmark predictor: :mod:`rigbuild.track.landmarks` (the 468-point face
+mesh network) and :mod:`rigbuild.track.landmarks3d` provide it for the neutral registration
+(``registration.coarse: landmarks``). The default coarse level uses painted marker dots (the synthetic sessions
+paint them near the rig's marker vertices; real sessions paint dots on the actor): dark, colourless discs on
+skin, which are detected as connected components of pixels much darker than their neighbourhood and nearly
+grey (skin and speckle are reddish).
 """
 
 from __future__ import annotations

@@ -125,6 +125,10 @@ class RegistrationParams:
         iteration's gate, weight ``dot_weight``), never a fixed vertex; their labels (for the sequence
         tracker) are only read off the registered mesh at the end.
     landmark_min_reliability : landmarks below it do not take part in the initial alignment.
+    stencil_prior_weight : ``landmarks`` level only: from the first ``relabel_at`` iteration on, each dot
+        matched one to one (within ``stencil_gate_mm`` of the current mesh) to a stencil site (a painted dot
+        vertex of the template) pulls that vertex with this weight: the hand paints near the site, so the
+        stencil is a prior, weighted below the unlabeled-dot term; 0 = no prior.
     """
 
     ray_labels_are_dots: bool = True
@@ -143,6 +147,8 @@ class RegistrationParams:
     coarse: str = "dots"
     landmark_weight: float = 1.0
     landmark_min_reliability: float = 0.2
+    stencil_prior_weight: float = 0.0
+    stencil_gate_mm: float = 6.0
 
 
 #: the neutral registration's coarse levels (:class:`RegistrationParams` ``coarse``)
