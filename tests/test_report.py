@@ -255,3 +255,15 @@ def test_a_gate_measured_without_a_limit_is_shown_but_judges_nothing(tmp_path):
     assert '<span class="badge none">session not measured</span>' in page
     assert ('<tr><td>stereo_consistency_mm</td><td class="num ">0.2</td><td><span class="badge none">no limit</span>'
             in _section(page, "reconstruction"))
+
+
+def test_the_text_summary_has_one_line_per_stage_and_the_verdict_first():
+    from rigbuild.report.table import format_summary
+
+    text, verdict = format_summary(_nest({"calibration.rms_px": 0.3, "calibration.rotation_error_deg": 0.01,
+                                          "tracking.sequences.rom00.median_residual_mm": 0.2}))
+    lines = text.splitlines()
+    assert verdict == "warn" and lines[0] == "session warn" and len(lines) == 6
+    assert lines[1] == ("  Calibration      warn  calibration.rms_px = 0.3 (pass <= 0.2, warn <= 0.5); gates: 1 warn, "
+                        "1 not measured; ground truth: 1 pass")
+    assert lines[2].startswith("  Reconstruction   -     nothing measured with a limit; gates: none, 1 not measured")
