@@ -178,6 +178,9 @@ def test_the_page_in_chromium_moves_a_vertex_with_a_slider_plays_a_take_and_has_
     assert check["take"]["frame"] == f
     assert check["take"]["max_offset_mm"] == pytest.approx(np.abs(np.einsum("k,kvc->vc", w[f], char.deltas)).max(),
                                                            abs=0.01)
+    last_csv, _, _, last_char = take_files(html.parent)[-1]
+    assert check["switched"] == {"take": f"perf00 → {last_char} ({last_csv.parts[-4]})",
+                                 "model": f"character {last_char} (characters/{last_char}.npz)", "sliders": 3}
     # the summary table ends above the fold of a 1400x900 window
     assert check["summary_bottom_px"] < 900
     if check["webgl"]:  # swiftshader drew the mesh at the centre of the canvas (not the background grey)

@@ -95,7 +95,7 @@
     positions = new Float32Array(3 * mdl.V);
     blend(mdl, positions);
     if (!renderer) return;
-    if (mesh) { group.remove(mesh); mesh.geometry.dispose(); }
+    if (mesh) { group.remove(mesh); mesh.geometry.dispose(); mesh.material.dispose(); }
     var g = new THREE.BufferGeometry();
     g.setAttribute("position", new THREE.BufferAttribute(positions, 3));
     g.setIndex(new THREE.BufferAttribute(mdl.faces, 1));
@@ -263,6 +263,9 @@
       var m = current, dmax = 0;
       for (var i = 0; i < positions.length; i++) dmax = Math.max(dmax, Math.abs(positions[i] - m.neutral[i]));
       out.take = { label: take.label, frame: fBest, max_offset_mm: dmax };
+      select.value = "take:" + (data.takes.length - 1);  // the menu switches take and character
+      select.dispatchEvent(new Event("change", { bubbles: true }));
+      out.switched = { take: take.label, model: current.label, sliders: sliders.length };
     }
     if (renderer) {
       render();
