@@ -75,6 +75,12 @@ def test_ground_truth_tracking_metrics_from_files_exact(tmp_path):
     assert values["end_drift_mm"] == pytest.approx(0.2, abs=1e-5)
     assert per["rom00"]["first_error_mm"] == pytest.approx(0.0, abs=1e-5)
     assert "errors" not in per["rom00"]
+    assert values["all_vertices_mean_error_mm"] == pytest.approx(0.2 / 3, abs=1e-5)
+    tracked[1, 2] += [0.0, 0.0, 0.9]  # one region vertex, one frame
+    values, _ = ground_truth_tracking_metrics(gt, tmp_path / "cameras.json", F, np.arange(4), to_cal(V),
+                                              ("rom00", 0), {"rom00": (to_cal(tracked), np.array([0, 1, 2]))},
+                                              regions={"lips": np.array([2])})
+    assert values["lips_mean_error_mm"] == pytest.approx((0.9 + 0.2) / 3, abs=1e-5)
     with pytest.raises(ValueError, match="no frames"):
         ground_truth_tracking_metrics(gt, tmp_path / "cameras.json", F, np.arange(4), V, ("rom00", 7), {})
 
@@ -122,3 +128,22 @@ def test_ground_truth_tracking_metrics_evaluate_the_observed_face(tmp_path):
     assert seq["visible_mean_error_mm"] == pytest.approx(0.0, abs=1e-5)
     assert seq["visible_end_error_mm"] == pytest.approx(0.0, abs=1e-5)
     assert seq["per_frame_mean_mm"] == pytest.approx([0.3, 0.3], abs=1e-5)
+
+
+def test_contour_regions_are_the_vertices_near_the_lip_and_eyelid_loops():
+    from rigbuild.eval.tracking import contour_regions
+
+    # 68 landmarks: lips on a 20 mm circle at the origin, eyes on 8 mm circles at (+-30, 40); the rest far away
+    L = np.full((68, 3), 500.0)
+    a = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    L[48:60] = np.c_[20 * np.cos(a), 20 * np.sin(a), np.zeros(12)]
+    L[60:68] = np.c_[10 * np.cos(a[:8] * 1.5), 10 * np.sin(a[:8] * 1.5), np.zeros(8)]
+    for k, cx in ((36, -30.0), (42, 30.0)):
+        b = np.linspace(0, 2 * np.pi, 6, endpoint=False)
+        L[k:k + 6] = np.c_[cx + 8 * np.cos(b), 40 + 8 * np.sin(b), np.zeros(6)]
+    probes = np.array([[0, 20.5, 0], [0, 0, 0], [0, 27, 0], [-30, 47.5, 0], [-30, 40, 0], [100, 0, 0]], float)
+    V = np.vstack([L, probes])
+    r = contour_regions(V, np.arange(68), np.arange(68, 74), lip_mm=6.0, eyelid_mm=4.0)
+    assert r["lips"].tolist() == [68]  # 0.5 mm off the outer loop; the centre (10 mm) and 7 mm out are not
+    assert r["eyelids"].tolist() == [71]
+    assert contour_regions(V, None, np.arange(68, 74)) == {}

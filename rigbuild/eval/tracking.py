@@ -47,6 +47,39 @@ def landmark_nme(predicted: np.ndarray, truth: np.ndarray, outer_eye=(36, 45)) -
     return float(np.linalg.norm(p - t, axis=1).mean() / np.linalg.norm(t[outer_eye[0]] - t[outer_eye[1]]))
 
 
+#: iBUG 68 loops of the lip contours (outer 48-59, inner 60-67) and the eyelid margins (36-41, 42-47)
+LIP_LOOPS = (tuple(range(48, 60)), tuple(range(60, 68)))
+EYELID_LOOPS = (tuple(range(36, 42)), tuple(range(42, 48)))
+
+
+def _polyline_distance(points: np.ndarray, loops: list[np.ndarray]) -> np.ndarray:
+    """(N,) distance (mm) of ``points`` (N, 3) to the closed polylines ``loops`` (each (K, 3))."""
+    d = np.full(points.shape[0], np.inf)
+    for L in loops:
+        a, b = L, np.roll(L, -1, axis=0)
+        ab = b - a
+        t = np.clip(np.einsum("nkd,kd->nk", points[:, None] - a[None], ab) / np.maximum((ab * ab).sum(1), 1e-12), 0, 1)
+        q = a[None] + t[..., None] * ab[None]
+        d = np.minimum(d, np.linalg.norm(points[:, None] - q, axis=2).min(1))
+    return d
+
+
+def contour_regions(neutral: np.ndarray, landmarks: np.ndarray | None, face_vertices: np.ndarray,
+                    lip_mm: float = 6.0, eyelid_mm: float = 4.0) -> dict[str, np.ndarray]:
+    """Vertex sets of the lips and the eyelids on a template: face-mask vertices within ``lip_mm`` of the lip
+    contour loops or ``eyelid_mm`` of the eyelid-margin loops of its 68 landmarks (``Rig.landmarks``; mm on the
+    template neutral (V, 3)). Empty dict when the template has no 68 landmarks."""
+    if landmarks is None or np.asarray(landmarks).size != 68 or np.any(np.asarray(landmarks) < 0):
+        return {}
+    face_vertices = np.asarray(face_vertices, np.int64)
+    L = np.asarray(neutral, np.float64)[np.asarray(landmarks, np.int64)]
+    P = np.asarray(neutral, np.float64)[face_vertices]
+    out = {}
+    for name, loops, r in (("lips", LIP_LOOPS, lip_mm), ("eyelids", EYELID_LOOPS, eyelid_mm)):
+        out[name] = face_vertices[_polyline_distance(P, [L[list(lp)] for lp in loops]) <= r]
+    return out
+
+
 def surface_anchors(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Closest points of ``points`` (N, 3) on the mesh (vertices, faces): triangle ids (N,), barycentrics (N, 3)."""
     import igl
@@ -131,7 +164,8 @@ def observed_face_vertices(truth_neutral: np.ndarray, faces: np.ndarray, cameras
 def ground_truth_tracking_metrics(gt_dir, cameras, faces: np.ndarray, face_vertices: np.ndarray,
                                   neutral: np.ndarray, neutral_at: tuple[str, int],
                                   sequences: dict[str, tuple[np.ndarray, np.ndarray]],
-                                  min_cameras: int = 2) -> tuple[dict, dict]:
+                                  min_cameras: int = 2, regions: dict[str, np.ndarray] | None = None
+                                  ) -> tuple[dict, dict]:
     """Tracking accuracy of a synthetic session against its ``ground_truth/`` folder.
 
     gt_dir : the session's ground_truth folder (with ``cameras.json``, the true cameras); cameras : the
@@ -144,7 +178,9 @@ def ground_truth_tracking_metrics(gt_dir, cameras, faces: np.ndarray, face_verti
     whole face mask ``face_vertices``: ``neutral_error_mm`` + :func:`session_tracking_metrics`; the same over
     the observed region prefixed ``visible_``; ``observed_face_vertices`` / ``observed_face_fraction``.
     Per sequence: :func:`tracking_summary`'s scalars and curves over the whole mask, and
-    ``visible_{mean,p95,end}_error_mm`` over the observed region.
+    ``visible_{mean,p95,end}_error_mm`` over the observed region. ``regions`` (name -> vertex ids, e.g.
+    :func:`contour_regions`' lips and eyelids) add ``<name>_mean_error_mm`` over all tracked frames, and
+    ``all_vertices_mean_error_mm`` is over every vertex of the mesh (teeth, tongue, eyes, head included).
     """
     from pathlib import Path
 
@@ -164,11 +200,18 @@ def ground_truth_tracking_metrics(gt_dir, cameras, faces: np.ndarray, face_verti
               "observed_face_vertices": int(observed.size),
               "observed_face_fraction": float(observed.size / max(face_vertices.size, 1))}
     summaries, visible_summaries = {}, {}
+    regions = {"all_vertices": np.arange(truth_neutral.shape[0]), **(regions or {})}
+    region_errors = {k: [] for k in regions}
     for name, (V, frame_ids) in sequences.items():
         tracked = points_to_ground_truth(np.asarray(V, np.float64), sim)
         truth = _truth_frames(gt_dir, name, frame_ids)
         summaries[name] = tracking_summary(tracked, truth, faces, face_vertices, neutral_gt, truth_neutral)
         visible_summaries[name] = tracking_summary(tracked, truth, faces, observed, neutral_gt, truth_neutral)
+        for k, ids in regions.items():
+            region_errors[k].append(vertex_errors(tracked, truth, ids).ravel())
+    for k, errs in region_errors.items():
+        if errs and np.concatenate(errs).size:
+            values[f"{k}_mean_error_mm"] = float(np.concatenate(errs).mean())
     values.update(session_tracking_metrics(summaries))
     values.update({f"visible_{k}": v for k, v in session_tracking_metrics(visible_summaries).items()})
     per = {n: {k: v for k, v in s.items() if not k.endswith("errors")} for n, s in summaries.items()}
@@ -211,8 +254,9 @@ def run_eval_tracking(session_dir, gt_cameras, gt_sequences, cameras, neutral, v
     needed = {(gt_dir / "rom" / f"{name}.npz").resolve() for name in [neutral_at[0], *tracked]}
     if not needed <= declared:
         raise ValueError(f"ground-truth files read but not declared: {sorted(map(str, needed - declared))}")
+    regions = contour_regions(template.neutral, template.landmarks, template.face_vertices)
     values, per = ground_truth_tracking_metrics(gt_dir, cameras, template.faces, template.face_vertices,
-                                                neutral_v, neutral_at, tracked, min_cameras)
+                                                neutral_v, neutral_at, tracked, min_cameras, regions)
     curves = {name: {k: d.pop(k) for k in list(d) if isinstance(d[k], list)} for name, d in per.items()}
     values["sequences"] = per
     if detail_path is not None:
