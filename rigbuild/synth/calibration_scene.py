@@ -7,6 +7,8 @@
 - :func:`render_calibration_session` writes the calibration images of a synthetic session rendered by the
   project renderer (``rigbuild.render.board``) exactly as ``rigbuild.synth.session.generate_session``
   does, without the ROM images, performances and rigs: the image-based tests and the benchmark use it.
+  With ``intrinsics_poses`` it also writes each camera's own close-up boards, ``calib_intrinsics/<cam>/``
+  (:func:`intrinsics_board_poses`; off by default, so the session is unchanged).
 """
 
 from __future__ import annotations
@@ -100,9 +102,53 @@ def simulate_detections(cameras: list[Camera], board: BoardSpec, poses: list[tup
     return out
 
 
+def intrinsics_board_poses(camera: Camera, board: BoardSpec, n_poses: int, seed: int = 0, fill: float = 0.6,
+                           max_tilt_deg: float = 40.0, margin_px: float = 15.0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Close-up board poses for one camera alone (its own intrinsics set, ``calib_intrinsics/<cam>/``).
+
+    The board is held in front of ``camera`` so that it spans about ``fill`` of the image width (x 0.8-1.25),
+    its centre spread over the middle 60 % of the image (the board reaching towards the corners), tilted by
+    up to ``max_tilt_deg`` about both board axes and rolled by up to 30 degrees; every pose is seen fully
+    (:func:`rigbuild.synth.rig_layout.board_visibility` with ``margin_px``). ``X_world = R x_board + t``, mm.
+    """
+    from rigbuild.synth.rig_layout import _rotation_about, board_outline, board_visibility
+
+    rng = np.random.default_rng(seed)
+    outline = board_outline(board)
+    mid = outline.mean(0)
+    d0 = camera.K[0, 0] * float(np.ptp(outline[:, 0])) / (fill * camera.width)
+    poses: list[tuple[np.ndarray, np.ndarray]] = []
+    for _ in range(200 * n_poses):
+        if len(poses) == n_poses:
+            break
+        uv = np.array([[rng.uniform(0.2, 0.8) * camera.width, rng.uniform(0.2, 0.8) * camera.height]])
+        centre = camera.center + camera.rays(uv)[0] * d0 * rng.uniform(0.8, 1.25)
+        tilt = (_rotation_about(np.array([1.0, 0, 0]), np.deg2rad(rng.uniform(-max_tilt_deg, max_tilt_deg)))
+                @ _rotation_about(np.array([0, 1.0, 0]), np.deg2rad(rng.uniform(-max_tilt_deg, max_tilt_deg)))
+                @ _rotation_about(np.array([0, 0, 1.0]), np.deg2rad(rng.uniform(-30.0, 30.0))))
+        R = camera.R.T @ tilt  # board axes along the camera's (printed side towards it), then tilted
+        t = centre - R @ mid
+        if board_visibility([camera], board, R, t, margin_px=margin_px, max_view_angle_deg=60.0):
+            poses.append((R, t))
+    if len(poses) < n_poses:
+        raise ValueError(f"intrinsics_board_poses: {len(poses)} of {n_poses} close-up poses found for {camera.id}")
+    return poses
+
+
 # ------------------------------------------------------------------ rendered calibration sessions
+def _write_png(path, img: np.ndarray) -> None:
+    """An RGB render as a PNG (fast compression), atomically."""
+    import cv2
+
+    from rigbuild.io.atomic import atomic_path
+
+    with atomic_path(path, suffix=".png") as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(img[..., ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+            raise OSError(f"could not write {path}")
+
+
 def render_calibration_session(folder, name: str, synthetic: dict | None, target=None,
-                               render_options: dict | None = None) -> dict:
+                               render_options: dict | None = None, intrinsics_poses: int = 0) -> dict:
     """Write the calibration part of a synthetic session, rendered by the project renderer.
 
     The same functions and seeds as :func:`rigbuild.synth.session.generate_session` (``make_camera_rig``
@@ -119,6 +165,8 @@ def render_calibration_session(folder, name: str, synthetic: dict | None, target
     target : (3,) camera look-at point, mm (None: the actor's face centre, as the generator computes it;
         giving it skips building the actor rig, for fast tests).
     render_options : extra keyword arguments for ``render_board`` (e.g. ``msaa``); None = the generator's.
+    intrinsics_poses : > 0: also render that many close-up boards per camera, seen by it alone, as
+        ``calib_intrinsics/<cam>/<n>.png`` (:func:`intrinsics_board_poses`); 0 (default): none.
 
     Returns
     -------
@@ -129,9 +177,7 @@ def render_calibration_session(folder, name: str, synthetic: dict | None, target
     import time
     from pathlib import Path
 
-    import cv2
-
-    from rigbuild.io.atomic import atomic_path, save_npz
+    from rigbuild.io.atomic import save_npz
     from rigbuild.io.cameras import write_cameras
     from rigbuild.render.board import render_board
     from rigbuild.session import session_from_dict, write_session
@@ -167,10 +213,13 @@ def render_calibration_session(folder, name: str, synthetic: dict | None, target
         for n, (Rb, tb) in enumerate(poses):
             img = render_board(cam, spec.board, Rb, tb, noise_sigma=float(p["noise_sigma"]), seed=seed * 1000 + n,
                                **(render_options or {}))
-            path = folder / "calib" / cam.id / f"{n}.png"
-            with atomic_path(path, suffix=".png") as tmp:
-                if not cv2.imwrite(str(tmp), np.ascontiguousarray(img[..., ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
-                    raise OSError(f"could not write {path}")
+            _write_png(folder / "calib" / cam.id / f"{n}.png", img)
+    for cam in cameras if intrinsics_poses > 0 else []:
+        close = intrinsics_board_poses(cam, spec.board, intrinsics_poses, seed=seed * 1000 + 500 + cameras.index(cam))
+        for n, (Rb, tb) in enumerate(close):
+            img = render_board(cam, spec.board, Rb, tb, noise_sigma=float(p["noise_sigma"]),
+                               seed=seed * 1000 + 500 + 50 * cameras.index(cam) + n, **(render_options or {}))
+            _write_png(folder / "calib_intrinsics" / cam.id / f"{n}.png", img)
     seconds = time.perf_counter() - t0
     write_session(plan, folder)
     write_cameras(folder / "ground_truth" / "cameras.json", cameras, session=name)
