@@ -110,7 +110,8 @@ def test_the_summary_row_of_each_stage_is_its_worst_status_and_the_verdict_the_w
     assert verdict == "fail"
     cal = by["calibration"]
     assert cal.status == "warn" and cal.number.key == "calibration.rms_px" and cal.number.status == "pass"
-    assert cal.missing_gates == ["calibration.heldout_reprojection_rms_px"]
+    assert cal.missing_gates == ["calibration.heldout_reprojection_rms_px", "calibration.n_gate_failures",
+                                 "calibration.n_plausibility_flags"]
     assert [j.key for j in cal.truth] == ["calibration.rotation_error_deg"]
     assert by["reconstruction"].status == "" and by["reconstruction"].number is None
     trk = by["tracking"]
@@ -134,7 +135,7 @@ def test_the_page_opens_with_the_verdict_and_one_row_per_stage_with_its_limit(tm
     head = page.split('<section id="summary">', 1)[1].split("</section>", 1)[0]
     assert '<span class="badge fail">session fail · 3 of 5 stages not measured</span>' in head
     assert "no ground truth (a real capture): judged by its gates alone" in head
-    assert "capture gates (no ground truth needed): 2 pass, 1 fail, 10 not measured" in head
+    assert "capture gates (no ground truth needed): 2 pass, 1 fail, 12 not measured" in head
     rows = re.findall(r'<tr><th><a href="#(\w+)">', head)
     assert rows == ["calibration", "reconstruction", "tracking", "personalization", "retargeting"]
     cal = head.split('href="#calibration"', 1)[1].split("</tr>", 1)[0]
@@ -165,6 +166,10 @@ def test_per_sequence_and_per_character_keys_are_grids_and_the_demo_page_is_comp
     grid = trk.split('<table class="grid">', 1)[1].split("</table>", 1)[0]
     assert re.findall(r"<tr><th>(rom\d+)</th>", grid) == ["rom00", "rom01", "rom02", "rom03"]
     assert "<th>mean_error_mm</th>" in grid and "<th>lost_frames</th>" in grid
+    cam = _section(build_report(tmp_path, "c", {"calibration": {"camera_rms_px": {"cam00": 0.1, "cam01": 0.2},
+                                                                "heldout_camera_rms_px": {"cam01": 0.3}}}), "calibration")
+    cam = cam.split('<table class="grid">', 1)[1].split("</table>", 1)[0]
+    assert re.findall(r"<tr><th>(cam\d+)</th>", cam) == ["cam00", "cam01"] and "<th>heldout_camera_rms_px</th>" in cam
     ret = _section(page, "retargeting").split('<table class="grid">', 1)[1].split("</table>", 1)[0]
     assert "<tr><th>ribera / template</th>" in ret and "<tr><th>seol / sculpted</th>" in ret
     assert len(flat) == 569 and page.count("<tr") < 180  # 569 keys, one table row per sequence / method+character
@@ -265,5 +270,5 @@ def test_the_text_summary_has_one_line_per_stage_and_the_verdict_first():
     lines = text.splitlines()
     assert verdict == "warn" and lines[0] == "session warn" and len(lines) == 6
     assert lines[1] == ("  Calibration      warn  calibration.rms_px = 0.3 (pass <= 0.2, warn <= 0.5); gates: 1 warn, "
-                        "1 not measured; ground truth: 1 pass")
+                        "3 not measured; ground truth: 1 pass")
     assert lines[2].startswith("  Reconstruction   -     nothing measured with a limit; gates: none, 1 not measured")

@@ -2,7 +2,8 @@
 character, columns: metric) instead of one row per key.
 
 ``tracking.sequences.rom00.median_residual_mm`` is row ``rom00``, column ``median_residual_mm``;
-``retarget.ribera.template.weight_mae`` is row ``ribera / template``, column ``weight_mae``. Every other key
+``retarget.ribera.template.weight_mae`` is row ``ribera / template``, column ``weight_mae``;
+``calibration.camera_rms_px.cam00`` is row ``cam00``, column ``camera_rms_px``. Every other key
 of a stage is a scalar, listed as ``key: value``.
 """
 
@@ -14,9 +15,10 @@ from typing import Any, Mapping
 
 from rigbuild.report.thresholds import limits_text, rule_for, status
 
-#: stage prefix -> regex of a grid key: (row, column)
+#: stage prefix -> regex of a grid key: (row, column); calibration's per-camera keys are ``<metric>.<camera>``
 GRID_KEYS = {
     "retarget": re.compile(r"^retarget\.(?P<row>[^.]+\.[^.]+)\.(?P<col>[^.]+)$"),
+    "calibration": re.compile(r"^calibration\.(?P<col>[^.]+)\.(?P<row>[^.]+)$"),
 }
 SEQUENCE_KEY = re.compile(r"^(?P<stage>[^.]+)\.sequences\.(?P<row>[^.]+)\.(?P<col>[^.]+)$")
 

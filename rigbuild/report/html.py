@@ -147,7 +147,7 @@ def metrics_html(flat: Mapping[str, Any], s: StageSummary, thresholds: Mapping |
                if not any(k == g for g in s.stage.gates)] if has_truth else []
     shown = {j.key for j in s.gates + s.truth}
     grid, rest = split_grid({k: v for k, v in own.items() if k not in shown}, prefix)
-    row_label = "method / character" if prefix == "retarget" else "sequence"
+    row_label = {"retarget": "method / character", "calibration": "camera"}.get(prefix, "sequence")
     body = (_judged_table(s.gates, s.missing_gates, prefix, "capture gate")
             + _judged_table(s.truth, missing, prefix, "vs ground truth")
             + grid_html(flat, grid, thresholds, row_label) + scalars_html(rest, thresholds))
