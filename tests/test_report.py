@@ -125,6 +125,8 @@ def test_the_summary_row_of_each_stage_is_its_worst_status_and_the_verdict_the_w
     ret = by["retargeting"]
     assert ret.status == "pass" and ret.number.key == "retarget.seol.template.mean_correlation" and not ret.gates
     assert worst(["pass", "", "warn"]) == "warn" and worst([]) == ""
+    # the calibration's own RMS / convergence gates (params.calibrate): any failure fails
+    assert [status("calibration.n_gate_failures", n) for n in (0, 1)] == ["pass", "fail"]
     # lost frames: none passes, up to two warn, more fail
     assert [status("tracking.lost_frames", n) for n in (0, 2, 3)] == ["pass", "warn", "fail"]
 

@@ -22,6 +22,7 @@ Rule = tuple[str, float, float]
 DEFAULT_THRESHOLDS: dict[str, Rule] = {
     "calibration.heldout_reprojection_rms_px": ("max", 0.5, 1.0),
     "calibration.rms_px": ("max", 0.2, 0.5),
+    "calibration.n_gate_failures": ("max", 0, 0),
     "calibration.focal_error_pct": ("max", 0.1, 0.5),
     "calibration.center_error_mm": ("max", 0.3, 1.0),
     "calibration.rotation_error_deg": ("max", 0.02, 0.1),
