@@ -10,7 +10,9 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 # Debian packages the stack needs: open3d links libEGL/libGL/libX11/libusb; moderngl's EGL renderer
 # needs Mesa's EGL vendor library and the llvmpipe DRI driver.
-DEB_PACKAGES := libusb-1.0-0 libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libx11-6
+# npm fetches three.js for the report's 3D view (python -m rigbuild.assets.web install); Debian's package only
+# where no npm is on the PATH (a Node.js install that ships its own npm conflicts with it).
+DEB_PACKAGES := libusb-1.0-0 libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libx11-6 $(if $(shell command -v npm),,npm)
 # The test suite also opens the HTML report in headless Chromium (the test skips when it is absent).
 TEST_DEB_PACKAGES := chromium
 # The SLURM test (tests/test_cluster_slurm.py) starts a one-node cluster on this machine from these packages
@@ -62,6 +64,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e '.[test]'
 	$(PY) -m pip check
 	$(PY) -m rigbuild.assets.face_models install
+	$(PY) -m rigbuild.assets.web install
 	touch $(STAMP)
 
 # SLURM, munge, slurmdbd's database and snakemake-executor-plugin-slurm, for tests/test_cluster_slurm.py

@@ -69,7 +69,8 @@ def status_markdown() -> str:
         data = json.loads(path.read_text())
         flat = {k: v for k, v in flatten_metrics(data).items()
                 if not k.startswith("machine.") and isinstance(v, (int, float)) and not isinstance(v, bool)}
-        date = data.get("machine", {}).get("date", "")
+        machine = data.get("machine")
+        date = machine.get("date", "") if isinstance(machine, dict) else ""
         lines += [f"## Benchmark `{name}` (`benchmarks/out/{path.name}`{', ' + date if date else ''})", "",
                   "| result | value |", "|---|---|"]
         lines += [f"| `{k}` | {_fmt(v)} |" for k, v in list(flat.items())[:MAX_BENCH_ROWS]]

@@ -207,7 +207,7 @@ def test_report_renders_every_section_in_chromium(e2e_run, tmp_path):
     text = html.read_text()
     for section in ("calibration", "reconstruction", "tracking", "personalization", "retargeting", "timings"):
         assert f'id="{section}"' in text
-    assert "data:image/png;base64," in text and "src=\"http" not in text  # self-contained
+    assert "data:image/jpeg;base64," in text and "src=\"http" not in text  # self-contained
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
         pytest.skip("Chromium is not installed (apt-get install chromium); the HTML checks above ran")
