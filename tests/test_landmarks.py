@@ -255,3 +255,22 @@ def test_track_neutral_frame_without_a_face_names_sequence_and_frame(landmarker)
     tp = from_config({"registration": {"coarse": "landmarks"}})
     with pytest.warns(RuntimeWarning), pytest.raises(InputError, match="sequence 'rom01' frame 7"):
         track_neutral_frame(procedural_head_rig(), frames, tp, where="sequence 'rom01' frame 7")
+
+
+def test_landmark_tables_are_committed_and_consistent():
+    from rigbuild.track.landmark_table import load_table, load_table_68
+
+    t68 = load_table_68()
+    w = np.asarray(t68["weights"])
+    assert np.asarray(t68["indices"]).shape == w.shape == (68, 4)
+    assert np.allclose(w.sum(1), 1, atol=1e-3) and (w >= 0).all()
+    for name, n_vertices in (("ict", 26719), ("procedural", None)):
+        t = load_table(name)
+        assert t["faces"].shape == (468, 3) and t["bary"].shape == (468, 3)
+        assert np.allclose(t["bary"].sum(1), 1, atol=1e-3)
+        assert ((t["faces"] == t["vertex"][:, None]).any(1)).all()
+        assert (t["reliability"] > 0).all() and (t["reliability"] <= 1).all()
+        if n_vertices:
+            assert t["faces"].max() < n_vertices
+    with pytest.raises(InputError, match="landmark_table --rig nosuchrig"):
+        load_table("nosuchrig")

@@ -28,7 +28,7 @@ from rigbuild.track.landmarks import LEFT_EYE_OUTER, N_LANDMARKS, RIGHT_EYE_OUTE
 
 ASSET_DIR = Path(__file__).resolve().parent.parent / "assets" / "face_landmarks"
 TABLE_68 = ASSET_DIR / "mediapipe_to_ibug68.json"
-TABLE_ICT = ASSET_DIR / "ict_468.json"
+TABLE_ICT = ASSET_DIR / "ict_468.json"  # the ICT template's (table_path("ict"))
 #: face-mesh candidates per 68 point (its nearest, by mean image distance)
 CANDIDATES = 4
 #: expressions rendered (ICT shape name -> weight); "neutral" has none
@@ -71,16 +71,29 @@ def load_table_68() -> dict:
     return json.loads(TABLE_68.read_text())
 
 
-def load_table_ict() -> dict:
-    """The committed 468 -> ICT table: ``vertex`` (468,) nearest vertex, ``triangle`` (468,) and ``faces`` (468, 3)
-    its triangle (index, vertex ids), ``bary`` (468, 3), ``spread_mm``, ``reliability`` (468,), as numpy arrays."""
+def table_path(rig_name: str) -> Path:
+    """The committed 468 -> template table of a template rig (``<name>_468.json``)."""
+    return ASSET_DIR / f"{rig_name}_468.json"
+
+
+def load_table(rig_name: str = "ict") -> dict:
+    """The committed 468 -> template table of rig ``rig_name``: ``vertex`` (468,) nearest vertex, ``triangle``
+    (468,) and ``faces`` (468, 3) its triangle (index, vertex ids), ``bary`` (468, 3), ``spread_mm``,
+    ``reliability`` (468,), as numpy arrays. InputError with the command that makes it when absent."""
     from rigbuild.errors import InputError
 
-    if not TABLE_ICT.is_file():
-        raise InputError("the 468 -> ICT landmark table is missing", path=TABLE_ICT,
-                         fix="run `python -m rigbuild.track.landmark_table` (needs ICT-FaceKit) or reinstall rigbuild")
-    d = json.loads(TABLE_ICT.read_text())
+    path = table_path(rig_name)
+    if not path.is_file():
+        raise InputError(f"no 468-landmark table for the template rig '{rig_name}'", path=path,
+                         fix=f"run `python -m rigbuild.track.landmark_table --rig {rig_name} --skip 68` (renders the "
+                             "template), or use registration.coarse: dots")
+    d = json.loads(path.read_text())
     return {k: np.asarray(v) if isinstance(v, list) else v for k, v in d.items()}
+
+
+def load_table_ict() -> dict:
+    """:func:`load_table` of the ICT template."""
+    return load_table("ict")
 
 
 def fit_combination(P: np.ndarray, q: np.ndarray, candidates: int = CANDIDATES) -> tuple[np.ndarray, np.ndarray]:
@@ -108,7 +121,7 @@ def _sample_views(rig, head_fn, cameras, landmarker, expressions) -> list[dict]:
 
     base = None
     out = []
-    ibug = ict_ibug68_vertices(rig)
+    ibug = ict_ibug68_vertices(rig) if rig.name == "ict" else rig.landmarks
     for name, weights in expressions.items():
         w = np.zeros(rig.n_shapes)
         for k, v in weights.items():
@@ -151,7 +164,8 @@ def build_table_68(samples: list[dict]) -> dict:
 
 
 def build_table_ict(rig, samples: list[dict]) -> dict:
-    """The 468 -> ICT neutral table from all samples (see the module docstring)."""
+    """The 468 -> template neutral table (ICT or any rig rendered the same way) from all samples (see the
+    module docstring)."""
     from rigbuild.track.matches import closest_surface_points
 
     S = np.stack([s["surf"] for s in samples])  # (N, 468, 3)
@@ -163,40 +177,52 @@ def build_table_ict(rig, samples: list[dict]) -> dict:
     vert = f[np.arange(len(f)), np.argmax(bary, 1)]
     return {"vertex": vert.tolist(), "triangle": tri.tolist(), "faces": f.tolist(), "bary": np.round(bary, 5).tolist(),
             "spread_mm": np.round(spread, 3).tolist(), "reliability": np.round(1 / (1 + spread ** 2), 4).tolist(),
-            "n_samples": n.tolist(), "rig": "ict", "n_images": len(samples)}
+            "n_samples": n.tolist(), "rig": rig.name, "n_images": len(samples)}
+
+
+def _load_template(name: str):
+    """The template to build a table for: ICT with the rendered expressions, or ``load_rig(name)``."""
+    if name == "ict":
+        from rigbuild.io.rigs import read_ict_rig
+        from rigbuild.paths import ict_dir
+
+        return read_ict_rig(ict_dir(), expressions=sorted({k for e in EXPRESSIONS.values() for k in e}))
+    from rigbuild.io.rigs import load_rig
+
+    return load_rig(name)
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Build both tables (``--skip 68`` / ``--skip ict`` leaves one as it is)."""
+    """Build the tables (``--skip 68`` / ``--skip table`` leaves one as it is; ``--rig``: the template of the
+    468 table; the 68 table is always fitted on ICT)."""
     import argparse
 
     ap = argparse.ArgumentParser(prog="python -m rigbuild.track.landmark_table", description=__doc__.split("\n")[0])
-    ap.add_argument("--skip", action="append", default=[], choices=["68", "ict"])
-    skip = set(ap.parse_args(argv).skip)
+    ap.add_argument("--skip", action="append", default=[], choices=["68", "table"])
+    ap.add_argument("--rig", default="ict", help="template rig of the 468 table (ict, procedural, a path)")
+    a = ap.parse_args(argv)
+    skip = set(a.skip)
     from rigbuild.io.atomic import write_json
-    from rigbuild.io.rigs import read_ict_rig
-    from rigbuild.paths import ict_dir
     from rigbuild.track.landmark_views import sphere_cameras, template_head
     from rigbuild.track.landmarks import FaceLandmarker
 
-    names = sorted({k for e in EXPRESSIONS.values() for k in e})
-    rig = read_ict_rig(ict_dir(), expressions=names)
     landmarker = FaceLandmarker()
-    centre = rig.neutral[rig.landmarks].mean(0)
-    frontal = sphere_cameras(centre, *zip(*FRONTAL_VIEWS))
-    wide = sphere_cameras(centre, *zip(*WIDE_VIEWS))
-    head_fn = lambda V: template_head(rig, V)  # noqa: E731
     ASSET_DIR.mkdir(parents=True, exist_ok=True)
-    if "ict" not in skip:
-        sall = _sample_views(rig, head_fn, wide, landmarker, EXPRESSIONS)
-        tict = build_table_ict(rig, sall)
-        tict["source"] = (f"python -m rigbuild.track.landmark_table: {len(sall)} renders of the ICT template, "
-                          f"views {WIDE_VIEWS}, expressions {list(EXPRESSIONS)}")
-        write_json(TABLE_ICT, tict, indent=None)
-        print(f"ICT table: spread median {np.median(tict['spread_mm']):.2f} mm, "
-              f"90th pct {np.percentile(tict['spread_mm'], 90):.2f} mm")
+    if "table" not in skip:
+        rig = _load_template(a.rig)
+        expr = {k: e for k, e in EXPRESSIONS.items() if all(n in rig.shape_names for n in e)}
+        wide = sphere_cameras(rig.neutral[rig.landmarks].mean(0), *zip(*WIDE_VIEWS))
+        sall = _sample_views(rig, lambda V: template_head(rig, V), wide, landmarker, expr)
+        tab = build_table_ict(rig, sall)
+        tab["source"] = (f"python -m rigbuild.track.landmark_table --rig {a.rig}: {len(sall)} renders of the "
+                         f"template, views {WIDE_VIEWS}, expressions {list(expr)}")
+        write_json(table_path(rig.name), tab, indent=None)
+        print(f"{rig.name} table: spread median {np.median(tab['spread_mm']):.2f} mm, "
+              f"90th pct {np.percentile(tab['spread_mm'], 90):.2f} mm")
     if "68" not in skip:
-        s68 = _sample_views(rig, head_fn, frontal, landmarker, EXPRESSIONS)
+        rig = _load_template("ict")
+        frontal = sphere_cameras(rig.neutral[rig.landmarks].mean(0), *zip(*FRONTAL_VIEWS))
+        s68 = _sample_views(rig, lambda V: template_head(rig, V), frontal, landmarker, EXPRESSIONS)
         t68 = build_table_68(s68)
         t68["source"] = ("python -m rigbuild.track.landmark_table: NNLS fit over renders of the ICT template "
                          f"({len(s68)} images, views {FRONTAL_VIEWS}, expressions {list(EXPRESSIONS)}) to "

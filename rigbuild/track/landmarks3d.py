@@ -122,12 +122,12 @@ def frame_landmarks(cameras: list[Camera], images: list[np.ndarray], landmarker,
 def neutral_landmarks(template, cameras: list[Camera], images: list[np.ndarray], where: str, path=None,
                       max_error_px: float = 8.0):
     """The ``landmarks`` coarse level's input for the neutral registration: the frame's landmarks triangulated
-    and tied to the template through the committed table (:func:`rigbuild.track.landmark_table.load_table_ict`).
+    and tied to the template through its committed table (:func:`rigbuild.track.landmark_table.load_table`).
     Returns :class:`rigbuild.track.register.LandmarkObservations`; InputError naming ``where`` when fewer than
     two views see a face, or a missing model with its install command."""
-    from rigbuild.track.landmark_table import load_table_ict
+    from rigbuild.track.landmark_table import load_table
     from rigbuild.track.landmarks import FaceLandmarker
     from rigbuild.track.register import landmark_observations
 
     L3, _ = frame_landmarks(cameras, images, FaceLandmarker(), where, max_error_px, path=path)
-    return landmark_observations(L3.X, load_table_ict(), template.n_vertices)
+    return landmark_observations(L3.X, load_table(template.name), template.n_vertices)

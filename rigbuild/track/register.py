@@ -67,8 +67,8 @@ class LandmarkObservations:
 
 def landmark_observations(X: np.ndarray, table: dict, n_vertices: int) -> LandmarkObservations:
     """The valid rows of triangulated landmarks ``X`` (468, 3) (NaN = lost) with a landmark table
-    (``triangle`` is not used: ``vertices`` come from ``faces``; see :func:`rigbuild.track.landmark_table.load_table_ict`)
-    checked against the template's vertex count ``n_vertices``."""
+    (its ``faces`` and ``bary``; :func:`rigbuild.track.landmark_table.load_table`) checked against the
+    template's vertex count ``n_vertices``."""
     faces = np.asarray(table["faces"], np.int64)
     if faces.max() >= n_vertices:
         raise InputError(f"the landmark table is for a {table.get('rig', '?')} template, not one with {n_vertices} "
