@@ -186,3 +186,32 @@ def test_lambda_is_converted_from_cm_once():
     # the same problem posed in cm: the solver's mm lambda divided by 100 is the paper's cm value
     w_cm = RiberaRetargeter(dp_cm, Q_cm, replace(p, lambda_cm=0.006)).solve(da_cm)
     np.testing.assert_allclose(w_mm, w_cm, atol=1e-9)
+
+
+# ------------------------------------------------------------------------------------- Seol's options
+@pytest.fixture(scope="module")
+def seol_case():
+    from rigbuild.assets.head import procedural_head_rig
+    from rigbuild.synth.retarget_scenes import synthetic_performance
+
+    head = procedural_head_rig()
+    return head, synthetic_performance(head, n_frames=240, fps=60, seed=5, noise_mm=0.2, gap_fraction=0.01)
+
+
+def test_seol_log_sparsity_and_antagonist_exclusion(seol_case):
+    from rigbuild.retarget.seol import retarget_seol
+
+    head, case = seol_case
+    common = {"alpha": 1e-4, "weight_bounds": (0.0, 1.5), "sparsity": 0.5, "baselines": False}
+    plain = retarget_seol(case["markers"], head, **common).weights
+    log = retarget_seol(case["markers"], head, sparsity_mode="log", **common).weights
+    excl = retarget_seol(case["markers"], head, sparsity_mode="log", antagonists=True, **common).weights
+    # the log penalty has the L1 term's slope at 0 and a smaller one above: the weights that are on shrink less
+    on = plain > 0.3
+    assert log[on].mean() > plain[on].mean()
+    assert not antagonist_frames(excl[1:-1], head.shape_names, level=1e-3).any()
+    assert antagonist_frames(log, head.shape_names, level=1e-3).mean() > 0.05
+    with pytest.raises(InputError, match="need weight_bounds from 0"):
+        from rigbuild.retarget.params import seol_from_config
+
+        seol_from_config({"sparsity_mode": "log"})

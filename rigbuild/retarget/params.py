@@ -263,6 +263,13 @@ class SeolParams:
     marker_lowpass_hz : zero-phase low-pass of the take's markers (-3 dB, Hz) before solving, or null.
     weight_bounds : [lo, hi]: the spacetime solution kept in the rig's weight range, or null (the paper).
     sparsity : L1 weight (mm^2 per unit weight; not in the paper); needs weight_bounds from 0.
+    sparsity_mode, sparsity_eps, antagonists, coherence_frames : the plausibility options (not in the paper;
+        need weight_bounds from 0): ``sparsity_mode`` ``"l1"`` (the L1 term above) or ``"log"`` (the
+        reweighted-L1 log penalty with slope ``sparsity`` at 0 and scale ``sparsity_eps``,
+        :mod:`rigbuild.retarget.ribera.plausible`); ``antagonists``: antagonist pairs
+        (:data:`rigbuild.retarget.plausible.ANTAGONISTS`) never on together (a penalty
+        ``antagonist_weight w_a w_b``, mm^2 per unit weight^2, pushes one to yield; then the weaker, over
+        ``coherence_frames``, is pinned at 0 and the spacetime solve re-run).
     """
 
     alpha: float = DEFAULT_ALPHA
@@ -284,6 +291,11 @@ class SeolParams:
     marker_lowpass_hz: Optional[float] = None
     weight_bounds: Optional[tuple[float, float]] = None
     sparsity: float = 0.0
+    sparsity_mode: str = "l1"
+    sparsity_eps: float = 0.1
+    antagonists: bool = False
+    antagonist_weight: float = 0.0
+    coherence_frames: float = 4.0
 
 
 @dataclass
@@ -328,6 +340,10 @@ def check_seol(p: SeolParams, where: str = f"{WHERE}.seol") -> SeolParams:
     _one_of(p.rigid_weights, RIGID_WEIGHTS, f"{where}.rigid_weights")
     _one_of(p.scale_match, SCALE_MATCH_MODES, f"{where}.scale_match")
     _one_of(p.scale_match_kernel, SCALE_MATCH_KERNELS, f"{where}.scale_match_kernel")
+    _one_of(p.sparsity_mode, SPARSITY_MODES, f"{where}.sparsity_mode")
+    if (p.sparsity_mode != "l1" or p.antagonists) and (p.weight_bounds is None or p.weight_bounds[0] < 0):
+        raise InputError(f"'{where}': sparsity_mode log and antagonists need weight_bounds from 0, got "
+                         f"{p.weight_bounds!r}", path="config", fix="set weight_bounds: [0, 1.5]")
     _interval(p.weight_range, f"{where}.weight_range", optional=False)
     _interval(p.weight_bounds, f"{where}.weight_bounds", optional=True)
     if p.sobolev:

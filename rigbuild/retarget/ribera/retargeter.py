@@ -11,8 +11,9 @@ from rigbuild.retarget.common import visible_mask
 from rigbuild.retarget.params import RetargetParams
 from rigbuild.retarget.ribera.bounded import box_qp
 from rigbuild.retarget.ribera.plausible import (ANTAGONIST_ROUNDS, REWEIGHT_PASSES, antagonist_pins,
-                                              antagonist_slopes,
-                                              reweighted_slopes, still_upper_bounds, support_masks)
+                                              antagonist_slopes, reweighted_slopes, still_upper_bounds,
+                                              support_masks)
+
 
 def rigid_jacobian(reference: np.ndarray) -> np.ndarray:
     """(M, 3, 6) derivative of the marker positions under a small rigid motion of ``reference`` (M, 3).
@@ -47,6 +48,10 @@ class RiberaRetargeter:
     pattern is built once and cached (:meth:`_pattern_systems`); all frames are solved together, each
     active-set pass only over the free (off-bound) weights (:func:`_solve_free`); ``solve(..., start=w)``
     seeds the active set from a nearby solution (the rigid re-fit in :meth:`RiberaModel.retarget`).
+
+    Plausibility options (``params.sparsity``, ``antagonists``, ``still_gate``; :mod:`.plausible`; need
+    bounds from 0): antagonist_pairs (P, 2) shape indices that are never on together; marker_ranges (M,)
+    each marker's range over the training sequence (mm), the still-region gate's noise scale.
     """
 
     def __init__(self, dp: np.ndarray, Q: np.ndarray, params: RetargetParams | None = None,

@@ -171,7 +171,7 @@ def retarget_seol(
                         sparsity=float(p.sparsity or 0.0))
     S = system.S  # gaps zeroed (ignored through visibility)
     mask, vals = _boundary_pins(system, p, B, S, vis, F)
-    W = _solve_spacetime(system, mask, vals)
+    W = _solve_spacetime(system, mask, vals, p)
     result = SeolResult(weights=W, shape_names=names, head_rotation=R, head_translation=head_d,
                         source_pivot=src_pivot, target_pivot=n_tgt.mean(0), system=system, warp=warp,
                         alpha=float(alpha))
@@ -311,15 +311,53 @@ def _boundary_pins(system: SeolSystem, p: SeolParams, B: np.ndarray, S: np.ndarr
     raise InputError(f"boundary_values '{p.boundary_values}' unknown", fix="use 'neutral' or 'perframe'")
 
 
-def _solve_spacetime(system: SeolSystem, mask: np.ndarray, vals: np.ndarray) -> np.ndarray:
-    """The spacetime solution (F, K): unconstrained, or within ``system.bounds`` (active set)."""
-    if system.bounds is None:
-        return system.solve(mask, vals)
-    W, passes = system.solve_bounded(mask, vals, max_iterations=BOUNDED_MAX_PASSES)
+def _bounded(system: SeolSystem, mask: np.ndarray, vals: np.ndarray, linear: np.ndarray | None = None) -> np.ndarray:
+    W, passes = system.solve_bounded(mask, vals, max_iterations=BOUNDED_MAX_PASSES, linear=linear)
     if passes > BOUNDED_MAX_PASSES:
         logging.getLogger("rigbuild.retarget.seol").warning(
             "bounded spacetime solve: no KKT point after %d active-set passes; weights clipped to %s",
             BOUNDED_MAX_PASSES, list(system.bounds))
+    return W
+
+
+def _solve_spacetime(system: SeolSystem, mask: np.ndarray, vals: np.ndarray, p: SeolParams | None = None
+                     ) -> np.ndarray:
+    """The spacetime solution (F, K): unconstrained, or within ``system.bounds`` (active set), with the
+    plausibility options of ``p`` (``sparsity_mode: log``, ``antagonists``; need ``weight_bounds`` from 0):
+    the log penalty by majorize-minimize passes (each the exact bounded solve with the linear term
+    :func:`rigbuild.retarget.ribera.plausible.reweighted_slopes` of the last weights, slope ``sparsity`` at 0),
+    with the antagonist penalty ``antagonist_weight w_a w_b`` linearized alongside
+    (:func:`~rigbuild.retarget.ribera.plausible.antagonist_slopes`), then antagonist pairs excluded by pinning the
+    weaker at 0 (:func:`~rigbuild.retarget.ribera.plausible.antagonist_pins`)."""
+    if system.bounds is None:
+        return system.solve(mask, vals)
+    W = _bounded(system, mask, vals)
+    if p is None or (p.sparsity_mode == "l1" and not p.antagonists):
+        return W
+    from rigbuild.retarget.plausible import antagonist_pairs
+    from rigbuild.retarget.ribera.plausible import (ANTAGONIST_ROUNDS, REWEIGHT_PASSES, antagonist_pins,
+                                                    antagonist_slopes, reweighted_slopes)
+
+    linear = None
+    pairs = antagonist_pairs(system.shape_names)
+    push = p.antagonists and pairs.size and p.antagonist_weight > 0
+    if p.sparsity_mode == "log" or push:
+        base = np.full(W.shape, system.sparsity)  # the L1 term is already in the system: add the difference
+        for _ in range(REWEIGHT_PASSES):
+            linear = (reweighted_slopes(W, system.sparsity, float(p.sparsity_eps), float(p.coherence_frames)) - base
+                      if p.sparsity_mode == "log" else np.zeros(W.shape))
+            if push:
+                linear = linear + antagonist_slopes(W, pairs, float(p.antagonist_weight), float(p.coherence_frames))
+            W = _bounded(system, mask, vals, linear)
+    if p.antagonists and pairs.size:
+        mask, vals = mask.copy(), vals.copy()
+        for _ in range(ANTAGONIST_ROUNDS):
+            pin = antagonist_pins(W, pairs, float(p.coherence_frames)) & ~mask
+            if not pin.any():
+                break
+            mask |= pin
+            vals[pin] = 0.0
+            W = _bounded(system, mask, vals, linear)
     return W
 
 

@@ -273,7 +273,7 @@ class SeolSystem:
 
     def solve_bounded(self, pin_mask: np.ndarray, pin_values: np.ndarray, bounds: tuple[float, float] | None = None,
                       max_iterations: int = 50, tolerance: float = 1e-9, start: int = 0,
-                      stop: int | None = None) -> tuple[np.ndarray, int]:
+                      stop: int | None = None, linear: np.ndarray | None = None) -> tuple[np.ndarray, int]:
         """:meth:`solve` with every free weight kept in ``bounds`` = (lo, hi) (not in the paper).
 
         Primal-dual active set (Hintermueller, Ito and Kunisch 2002): from the unconstrained minimizer's
@@ -288,7 +288,9 @@ class SeolSystem:
         ``max_iterations`` the weights are clipped. Each pass solves only the free weights
         (:func:`solve_block_tridiagonal_free`). Each pass is the exact spacetime minimizer under its
         pins, so the movement matching is re-solved around the bound instead of being cut off as a clamp
-        would. ``bounds`` defaults to the system's; ``start``/``stop`` as in :meth:`solve`.
+        would. ``bounds`` defaults to the system's; ``start``/``stop`` as in :meth:`solve`; ``linear`` (n, K):
+        an extra linear term ``sum linear_tk w_tk`` of eq. (4) (the reweighted sparsity option of
+        :func:`~rigbuild.retarget.seol.retarget.retarget_seol`).
         Returns (W (n, K) within bounds, passes).
         """
         bounds = self.bounds if bounds is None else bounds
@@ -297,6 +299,8 @@ class SeolSystem:
         lo, hi = weight_interval(bounds)
         # the energy does not change between passes, only the pins: assemble it once (half of a pass's time)
         quad = self._quadratic(start, stop)
+        if linear is not None:  # (the quadratic is half of eq. (4))
+            quad = (quad[0], quad[1], quad[2] - 0.5 * np.asarray(linear, dtype=np.float64))
         user = np.array(pin_mask, dtype=bool, copy=True)
         if user.shape != quad[2].shape or np.shape(pin_values) != quad[2].shape:
             raise InputError(f"pins must be {quad[2].shape}, got {user.shape}")
