@@ -101,3 +101,35 @@ def test_plausible_weights_on_all_four_takes(four_takes, ict_rig):
     assert rough <= rough_plain
     # the papers' terms alone do not give this (the numbers issue 23 measured)
     assert out["plain"][0]["antagonist_fraction"] > 0.2 and out["plain"][0]["mean_active"] > 10
+
+
+def test_plausible_ribera_on_a_take_with_occlusion_gaps(animface, ict_rig):
+    """Occlusion gaps (NaN) as the validating reader writes them: 3 % of the marker samples in runs, a
+    whole-face dropout and a frame with two markers: finite weights in bounds, the gaps' frames close to
+    the complete take's, the plausibility options still holding."""
+    from dataclasses import replace
+
+    from rigbuild.retarget.params import PLAUSIBLE, RiberaParams
+    from rigbuild.retarget.plausible import antagonist_frames
+    from rigbuild.retarget.run import apply_model, prepare_model
+
+    names, ids, pairs = read_marker_map(MARKER_DATA_DIR / "animface_ict.json")
+    jaw, brows = animface["Jaw"], animface["Eyebrows"]
+    training = make_training_set([jaw.markers, brows.markers], [jaw.names, brows.names])
+    p = replace(RiberaParams(lambda_cm=0.006, marker_lowpass_hz=5.0), **PLAUSIBLE)
+    model = prepare_model(training, ict_rig, names, ids, "ribera_fit", p.transfer_params("ribera_fit"),
+                          p.retarget_params("ribera_fit"), pairs)
+    rng = np.random.default_rng(0)
+    X = jaw.markers.copy()
+    for _ in range(60):  # runs of 1-20 frames on single markers
+        f, m = rng.integers(0, X.shape[0] - 20), rng.integers(0, X.shape[1])
+        X[f:f + rng.integers(1, 21), m] = np.nan
+    X[700:705] = np.nan
+    X[900, 2:] = np.nan
+    full = apply_model(model, training, jaw.markers, jaw.names, marker_lowpass_hz=5.0, fps=jaw.fps).weights
+    res = apply_model(model, training, X, jaw.names, marker_lowpass_hz=5.0, fps=jaw.fps)
+    w = res.weights
+    assert np.all(np.isfinite(w)) and w.min() >= 0.0 and w.max() <= 1.0
+    assert set(range(700, 705)) | {900} <= set(res.empty_frames.tolist())
+    assert np.abs(w - full).mean() < 0.02
+    assert not antagonist_frames(w, model.shape_names, level=0.3).any()
