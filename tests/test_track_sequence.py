@@ -161,3 +161,24 @@ def test_match_confidence_is_relative_to_the_frames_median_match_weight():
     c = match_confidence(ring, faces, m, scale=0.5)
     np.testing.assert_allclose(c, 1 - np.exp(-s / (0.5 * 3.5)), atol=1e-12)
     assert np.all(match_confidence(ring, faces, Matches.empty("flow"), 0.5) == 0)
+
+
+def test_dots_tracked_from_their_own_surface_points(scene, registered):
+    """dot_surface (each dot as a triangle + barycentrics on the registered neutral, as the landmarks coarse
+    level writes it): at the marker vertices themselves (one-hot, corners in another order) the tracking is
+    the vertex path's, exactly."""
+    from rigbuild.track.mesh import build_tracking_mesh
+    from rigbuild.track.stage import track_rom_sequence
+
+    template, actor, verts, frames = scene
+    tm = build_tracking_mesh(template.neutral, template.faces, template.face_region)
+    mk = tm.full_to_local[template.marker_vertices]
+    tri, corner = tm.vertex_tri[mk], tm.vertex_corner[mk]
+    full = tm.vertex_ids[tm.faces[tri]][:, ::-1]
+    bary = np.zeros((mk.size, 3))
+    bary[np.arange(mk.size), 2 - corner] = 1.0
+    args = (template, registered.vertices, frames[0], frames[:2], [0, 1], "rom00", TrackParams(levels=("features",)))
+    V0, _, m0, _ = track_rom_sequence(*args)
+    V1, _, m1, _ = track_rom_sequence(*args, dot_surface=(full, bary))
+    np.testing.assert_array_equal(V0, V1)
+    np.testing.assert_array_equal(m0, m1)

@@ -92,9 +92,10 @@ class NeutralRegistration:
     scan_rms_mm: float  # point-to-plane RMS of the face region to the scan
     dot_rms_mm: float
     history: list[dict] = field(default_factory=list)
-    #: (D, 3) template vertex ids and (D, 3) barycentrics of each dot's closest point on the registered neutral
-    #: (the ``landmarks`` coarse level: every detected dot gets its own surface location), else None
-    dot_surface: tuple[np.ndarray, np.ndarray] | None = None
+    #: the ``landmarks`` coarse level: every detected dot within the last gate of the registered neutral gets its
+    #: own surface location: (K, 3) template vertex ids of its triangle, (K, 3) barycentrics, (K,) dot index;
+    #: else None
+    dot_surface: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 def require_markers(template: Rig) -> None:
@@ -603,10 +604,11 @@ def _register_from_landmarks(template: Rig, scan_points: np.ndarray, scan_normal
     full = mesh.to_full(p, aligned_full)
     at_dots = np.where((mk_local >= 0)[:, None], p[np.maximum(mk_local, 0)], np.nan)
     labels = relabel_dots(at_dots, dots, params.relabel_gate_mm)  # read off the mesh, for the sequence tracker
-    tri, bary, _ = closest_surface_points(dots, p, mesh.faces)
+    tri, bary, dist = closest_surface_points(dots, p, mesh.faces)
+    on = np.flatnonzero(dist <= params.gate_schedule_mm[1])  # dots on the skin (not hair, background, eyes)
     return NeutralRegistration(
         vertices=full, markers=full[template.marker_vertices], similarity=(s, R, t), dot_labels=labels,
         scan_rms_mm=_scan_rms(p, mesh, tree, scan_points, scan_normals, params),
         dot_rms_mm=_dot_rms(p, mk_local, terms, mesh.faces), history=history,
-        dot_surface=(mesh.vertex_ids[mesh.faces[tri]], bary),
+        dot_surface=(mesh.vertex_ids[mesh.faces[tri[on]]], bary[on], on),
     )

@@ -128,13 +128,16 @@ class SequenceTracker:
 
     local_neutral : (T, 3) mm registered neutral on the tracking mesh; faces : (F, 3) tracking-mesh
     triangles; marker_local : (M,) tracking-mesh ids of the dot (marker) vertices; anchor_frames : the views
-    of the neutral frame the neutral was registered to (the anchor for drift).
+    of the neutral frame the neutral was registered to (the anchor for drift); dot_points : (tri (M,), bary
+    (M, 3)) the dots' own surface points on the tracking mesh (each detected dot where it sits on the
+    registered neutral, not a template vertex) instead of ``marker_local``'s vertices (None: the vertices).
     The Laplacian system's symbolic factorization is computed once here and reused for every solve.
     """
 
     def __init__(self, local_neutral: np.ndarray, faces: np.ndarray, marker_local: np.ndarray,
                  anchor_frames: list[ViewFrame], params: TrackParams | None = None,
-                 vertex_tri: np.ndarray | None = None, vertex_corner: np.ndarray | None = None):
+                 vertex_tri: np.ndarray | None = None, vertex_corner: np.ndarray | None = None,
+                 dot_points: tuple[np.ndarray, np.ndarray] | None = None):
         self.p = params or TrackParams()
         self.neutral = np.asarray(local_neutral, dtype=np.float64)
         self.faces = np.asarray(faces, dtype=np.int64)
@@ -150,6 +153,12 @@ class SequenceTracker:
                 vertex_tri[self.faces[:, c]] = np.arange(self.faces.shape[0])
                 vertex_corner[self.faces[:, c]] = c
         self.vertex_tri, self.vertex_corner = vertex_tri, vertex_corner
+        if dot_points is None:
+            self.dot_tri, self.dot_bary = self._vertex_points(self.marker_local)
+        else:
+            self.dot_tri = np.asarray(dot_points[0], np.int64)
+            self.dot_bary = np.asarray(dot_points[1], np.float64)
+            self.marker_local = self.faces[self.dot_tri, np.argmax(self.dot_bary, 1)]  # each dot's nearest vertex
         # dot neighbourhoods along the surface and the dot spacing, for the displacement-consistency test
         self.dot_nbrs, nd = surface_neighbours(self.neutral, self.faces, self.marker_local, k=self.p.dot_neighbours)
         first = nd[:, 0][np.isfinite(nd[:, 0])]
@@ -163,6 +172,14 @@ class SequenceTracker:
         bary[np.arange(ids.size), self.vertex_corner[ids]] = 1.0
         return self.vertex_tri[ids], bary
 
+    def _dot_positions(self, estimate: np.ndarray) -> np.ndarray:
+        """(M, 3) mm the dots' surface points on the tracking-mesh vertices ``estimate``."""
+        return np.einsum("mk,mkd->md", self.dot_bary, estimate[self.faces[self.dot_tri]])
+
+    def _dot_normals(self, estimate: np.ndarray) -> np.ndarray:
+        """(M, 3) the interpolated vertex normals at the dots (not renormalized: used for a facing sign)."""
+        return np.einsum("mk,mkd->md", self.dot_bary, vertex_normals(estimate, self.faces)[self.faces[self.dot_tri]])
+
     def dot_matches(self, frames: list[ViewFrame], estimate: np.ndarray, radius_px: float,
                     consistent: bool = False, predicted_uv: np.ndarray | None = None) -> Matches:
         """Dots assigned to the predicted marker projections, triangulated -> constraints at marker vertices.
@@ -171,8 +188,8 @@ class SequenceTracker:
         M = self.marker_local.size
         C = len(frames)
         uv = np.full((C, M, 2), np.nan)
-        pred3 = estimate[self.marker_local]
-        nrm = vertex_normals(estimate, self.faces)[self.marker_local]
+        pred3 = self._dot_positions(estimate)
+        nrm = self._dot_normals(estimate)
         for c, f in enumerate(frames):
             det = frame_dots(f, self.p.dots)
             cam = f.camera
@@ -187,7 +204,7 @@ class SequenceTracker:
             ok = consistent_displacements(np.where(ok[:, None], X - pred3, 0.0), ok, self.dot_nbrs,
                                           self.p.dot_consistency * self.dot_spacing_mm)
         ids = np.flatnonzero(ok)
-        tri, bary = self._vertex_points(self.marker_local[ids])
+        tri, bary = self.dot_tri[ids], self.dot_bary[ids]
         return Matches(tri, bary, X[ids], np.full(ids.size, self.p.dot_weight), np.zeros(ids.size, np.int64), "features")
 
     def dot_flow_prediction(self, previous: Source, frames: list[ViewFrame], estimate: np.ndarray) -> np.ndarray:
@@ -198,7 +215,7 @@ class SequenceTracker:
         moved further than the coarse assignment radius between frames (a jaw-open onset) is otherwise
         assigned to its neighbour's detection.
         """
-        pred3 = estimate[self.marker_local]
+        pred3 = self._dot_positions(estimate)
 
         def view(c: int) -> np.ndarray:
             uv = frames[c].camera.project(pred3)

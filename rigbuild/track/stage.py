@@ -118,7 +118,8 @@ def run_track_neutral(session_dir: str | os.PathLike, cameras_path: str | os.Pat
     reg, _ = track_neutral_frame(template, frames, tp, dot_vertices=dot_vertices,
                                  where=f"sequence '{seq.name}' frame {seq.neutral_frame}")
     extra = {} if reg.dot_surface is None else {"dot_surface_vertices": reg.dot_surface[0],
-                                                "dot_surface_bary": reg.dot_surface[1]}
+                                                "dot_surface_bary": reg.dot_surface[1],
+                                                "dot_surface_dots": reg.dot_surface[2]}
     save_npz(neutral_path, vertices=reg.vertices.astype(np.float32), markers=reg.markers.astype(np.float32),
              marker_vertices=template.marker_vertices, marker_names=np.asarray(template.marker_names),
              scale=np.float64(reg.similarity[0]), rotation=reg.similarity[1], translation=reg.similarity[2],
@@ -184,6 +185,7 @@ def run_track_sequence(session: str, session_dir: str | os.PathLike, cameras_pat
     tp.workers = max(int(threads), 1)
     with np.load(neutral_path) as z:
         neutral = z["vertices"].astype(np.float64)
+        dot_surface = (z["dot_surface_vertices"], z["dot_surface_bary"]) if "dot_surface_vertices" in z else None
     anchor_seq = spec.rom[0]
     anchor = load_views(spec, cameras, anchor_seq.name, anchor_seq.neutral_frame, anchor_depth_dir)
     frame_ids = [f for f in seq.frames if f >= seq.neutral_frame]
@@ -191,7 +193,7 @@ def run_track_sequence(session: str, session_dir: str | os.PathLike, cameras_pat
     t0 = time.perf_counter()
     V, C, markers, stats = track_rom_sequence(template, neutral, anchor, frames, frame_ids, seq.name, tp,
                                               progress=lambda s: log.info("frame %d: %s", s.frame, s),
-                                              dot_vertices=dot_vertices)
+                                              dot_vertices=dot_vertices, dot_surface=dot_surface)
     seconds = time.perf_counter() - t0
     lost = np.asarray([s.lost for s in stats], dtype=bool)
     if lost.any():  # lost frames reach the retargeting stages as marker gaps, not as wrong positions
@@ -253,13 +255,17 @@ def track_neutral_frame(template: Rig, frames: list[ViewFrame], params: TrackPar
 
 def track_rom_sequence(template: Rig, neutral_vertices: np.ndarray, anchor_frames: list[ViewFrame],
                        frames: list[list[ViewFrame]], frame_ids: list[int], sequence: str,
-                       params: TrackParams | None = None, progress=None, dot_vertices: np.ndarray | None = None
+                       params: TrackParams | None = None, progress=None, dot_vertices: np.ndarray | None = None,
+                       dot_surface: tuple[np.ndarray, np.ndarray] | None = None
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[FrameStats]]:
     """Track one ROM sequence from its neutral frame.
 
     template : the template rig (topology, face region, markers); neutral_vertices (V, 3) mm: the registered
     actor neutral; anchor_frames : the views of the global neutral frame; frames : per frame, its views;
-    frame_ids : frame numbers; dot_vertices : (D,) template vertices of the painted dots (default the markers).
+    frame_ids : frame numbers; dot_vertices : (D,) template vertices of the painted dots (default the markers);
+    dot_surface : (vertex ids (D', 3), bary (D', 3)) each detected dot's own surface point on the registered
+    neutral (``neutral.npz``'s ``dot_surface_*``, from the ``landmarks`` coarse level): the dots are tracked
+    from there instead of from ``dot_vertices``.
     Returns vertices (F, V, 3) float32 mm (full topology), confidence (F, V)
     float32, markers (F, M, 3) mm (lost frames are flagged in stats, not NaN here; :func:`run_track_sequence`
     writes them as gaps),
@@ -274,14 +280,32 @@ def track_rom_sequence(template: Rig, neutral_vertices: np.ndarray, anchor_frame
     if np.any(mk_local < 0):
         raise InputError("some painted dot (marker or stencil) vertices are not on the tracked face mesh",
                          fix="markers and stencil dots must lie on the connected skin surface of the template")
+    points = None if dot_surface is None else local_surface_points(mesh, *dot_surface)
     tracker = SequenceTracker(mesh.local(neutral_vertices), mesh.faces, mk_local, anchor_frames, params,
-                              mesh.vertex_tri, mesh.vertex_corner)
+                              mesh.vertex_tri, mesh.vertex_corner, dot_points=points)
     V, C, stats = tracker.track(frames, frame_ids, sequence, progress=progress)
     full = np.stack([mesh.to_full(v, neutral_vertices) for v in V]).astype(np.float32)
     conf = np.zeros((V.shape[0], template.n_vertices), np.float32)
     conf[:, mesh.vertex_ids] = C
     markers = full[:, template.marker_vertices].astype(np.float64)
     return full, conf, markers, stats
+
+
+def local_surface_points(mesh: TrackingMesh, vertices: np.ndarray, bary: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Surface points given as full-topology triangle corners (N, 3) and barycentrics (N, 3) -> tracking-mesh
+    triangles (N,) and the barycentrics in those triangles' corner order; InputError if a triangle is not tracked."""
+    vertices = np.asarray(vertices, np.int64).reshape(-1, 3)
+    bary = np.asarray(bary, np.float64).reshape(-1, 3)
+    local = mesh.full_to_local[vertices]
+    index = {tuple(sorted(f)): i for i, f in enumerate(mesh.faces.tolist())}
+    tri = np.array([index.get(tuple(sorted(f)), -1) for f in local.tolist()], np.int64)
+    if np.any(tri < 0) or np.any(local < 0):
+        raise InputError("a dot's surface point is not on the tracked face mesh",
+                         fix="re-run track_neutral with the same template rig")
+    out = np.zeros_like(bary)
+    for c in range(3):  # reorder each point's barycentrics to its tracking-mesh triangle's corners
+        out += np.where(mesh.faces[tri] == local[:, c:c + 1], bary[:, c:c + 1], 0.0)
+    return tri, out
 
 
 def stats_rows(stats: list[FrameStats]) -> list[dict]:
