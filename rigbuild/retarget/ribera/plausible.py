@@ -31,8 +31,10 @@ from scipy.ndimage import gaussian_filter1d
 
 from rigbuild.retarget.common import visible_mask
 
-#: majorize-minimize passes of the log sparsity penalty
+#: majorize-minimize passes of the log sparsity penalty (at most; they stop once no weight moves by more
+#: than REWEIGHT_TOLERANCE)
 REWEIGHT_PASSES = 3
+REWEIGHT_TOLERANCE = 1e-4
 #: rounds of antagonist exclusion (each pins the weaker shape of every pair still on together)
 ANTAGONIST_ROUNDS = 4
 #: a shape moves a marker of its support by at least this fraction of its largest marker displacement

@@ -10,9 +10,9 @@ from rigbuild.errors import InputError
 from rigbuild.retarget.common import visible_mask
 from rigbuild.retarget.params import RetargetParams
 from rigbuild.retarget.ribera.bounded import box_qp
-from rigbuild.retarget.ribera.plausible import (ANTAGONIST_ROUNDS, REWEIGHT_PASSES, antagonist_pins,
-                                              antagonist_slopes, reweighted_slopes, still_upper_bounds,
-                                              support_masks)
+from rigbuild.retarget.ribera.plausible import (ANTAGONIST_ROUNDS, REWEIGHT_PASSES, REWEIGHT_TOLERANCE,
+                                              antagonist_pins, antagonist_slopes, reweighted_slopes,
+                                              still_upper_bounds, support_masks)
 
 
 def rigid_jacobian(reference: np.ndarray) -> np.ndarray:
@@ -238,7 +238,9 @@ class RiberaRetargeter:
                     else np.full(w.shape, lam)
                 if push:
                     slopes = slopes + antagonist_slopes(w, self.antagonist_pairs, gamma, p.coherence_frames)
-                w = self._bounded_solve(A, b - slopes, start=w, hi=hi)
+                w_prev, w = w, self._bounded_solve(A, b - slopes, start=w, hi=hi)
+                if np.abs(w - w_prev).max(initial=0.0) < REWEIGHT_TOLERANCE:
+                    break
         if p.antagonists and self.antagonist_pairs.size:
             hi_a = np.full(w.shape, self.hi) if hi is None else hi.copy()
             for _ in range(ANTAGONIST_ROUNDS):
