@@ -44,6 +44,10 @@ Beyond the paper (options; the faithful path stays):
 - ``TransferParams.guess = "deformation"`` (and method ``deformation``, the guesses used directly): g_k by
   deformation transfer onto the character's neutral warped into the actor's proportions
   (:func:`deformation_guesses`), instead of the pointwise thin-plate RBF.
+- Plausibility options of eq. 16 (:mod:`.plausible`, off by default): ``RetargetParams.sparsity = "log"``
+  (E_Sparse as a reweighted-L1 log penalty: with w >= 0 eq. 16's L1 term is linear and changes nothing but
+  the right-hand side), ``antagonists`` (antagonist pairs never on together), ``still_gate`` (shapes whose
+  markers show no motion above noise held at 0), their decisions smoothed over ``coherence_frames``.
 
 Modules (one concept each; each function names its equation):
 
