@@ -215,3 +215,42 @@ def test_seol_log_sparsity_and_antagonist_exclusion(seol_case):
         from rigbuild.retarget.params import seol_from_config
 
         seol_from_config({"sparsity_mode": "log"})
+
+
+def test_stage_job_runs_the_options_from_the_config_block(tmp_path):
+    """``params.retarget.ribera`` with the options reaches the solve (rule ``retarget_ribera``): the job's
+    weights keep antagonists apart where the plain job does not, and the written params record the options."""
+    import json
+
+    from rigbuild.assets.head import procedural_head_rig
+    from rigbuild.io.curves import read_weight_curves_csv
+    from rigbuild.io.markers import write_markers_npz
+    from rigbuild.io.rigs import write_rig_npz
+    from rigbuild.retarget.stage import run_ribera
+
+    rig = procedural_head_rig()
+    names = rig.marker_names
+    ds = rig.deltas[:, rig.marker_vertices]
+    rom = rig.markers()[None] + np.concatenate([np.zeros((1,) + ds.shape[1:]), ds])
+    rng = np.random.default_rng(0)
+    W = np.zeros((120, rig.n_shapes))
+    k = rig.shape_names.index("jawLeft")
+    W[:, k] = 0.5 * (1 - np.cos(np.linspace(0, 2 * np.pi, 120)))
+    perf = rig.markers(rig.evaluate(W)) + 0.3 * rng.normal(size=(120, len(names), 3))
+    write_markers_npz(tmp_path / "rom.npz", rom, names, 60.0)
+    write_markers_npz(tmp_path / "perf.npz", perf, names, 60.0)
+    write_rig_npz(tmp_path / "char.npz", rig)
+    out = {}
+    for label, block in (("plain", {"lambda_cm": 0.006}), ("plausible", {"lambda_cm": 0.006, **PLAUSIBLE})):
+        d = tmp_path / label
+        paths = {k: str(d / f) for k, f in (("weights", "w.csv"), ("weights_json", "w.json"), ("gltf", "a.gltf"),
+                                            ("preview", "p.png"), ("metrics", "m.json"))}
+        run_ribera(str(tmp_path / "perf.npz"), [str(tmp_path / "rom.npz")], str(tmp_path / "char.npz"), "rbf", "head",
+                   "perf", block, [0], **paths)
+        w, shape_names, _ = read_weight_curves_csv(paths["weights"])
+        out[label] = (w, json.loads((d / "w.json").read_text()))
+    both = {k: antagonist_frames(w, shape_names, level=1e-3).mean() for k, (w, _) in out.items()}
+    assert both["plain"] > 0.2 and both["plausible"] == 0.0
+    assert out["plausible"][1]["meta"]["params"]["sparsity"] == "log"
+    assert out["plausible"][1]["meta"]["params"]["antagonists"] is True
+    assert out["plain"][1]["meta"]["params"]["sparsity"] == "l1"
