@@ -1,7 +1,8 @@
 # Per-frame CPU multi-view stereo of ROM sequences (no ground truth: see rules/eval_reconstruct.smk).
 # reconstruct_frame: one job per (session, sequence, frame) -> depth/points/mesh/coverage files + a frame record
 #   (a cluster spreads the frames; bundle them with Snakemake's `group` / --group-components if jobs are too small).
-# reconstruct_summary: one job per (session, sequence) -> coverage.png, recon_summary.json, sequence_metrics.json.
+# reconstruct_summary: one job per (session, sequence) -> coverage.png, renders/, recon_summary.json,
+#   sequence_metrics.json.
 # reconstruct_pool: one job per session -> reconstruction_metrics.json (session-level stage keys).
 # Uses from common.smk: config["params"]["reconstruct"], session_dir(session), session_spec(session), sequences().
 # config["params"]["reconstruct"] keys: rigbuild.reconstruct.params (checked at DAG start).
@@ -53,9 +54,16 @@ rule reconstruct_summary:
         session_yaml=lambda wc: f"{session_dir(wc.session)}/session.yaml",
         records=lambda wc: [f"results/{wc.session}/reconstruct/{wc.sequence}/frames/{f:06d}.json"
                             for f in session_spec(wc.session).sequence(wc.sequence).frames],
+        # the pictures' frames (neutral, peak) are chosen from the meshes; their depth maps are drawn
+        meshes=lambda wc: [f"results/{wc.session}/reconstruct/{wc.sequence}/mesh/{f:06d}.ply"
+                           for f in session_spec(wc.session).sequence(wc.sequence).frames],
+        depth=lambda wc: [f"results/{wc.session}/reconstruct/{wc.sequence}/depth/{f:06d}.npz"
+                          for f in session_spec(wc.session).sequence(wc.sequence).frames],
     output:
         summary="results/{session}/reconstruct/{sequence}/recon_summary.json",
         coverage=report("results/{session}/reconstruct/{sequence}/coverage.png", category="Reconstruction"),
+        # <frame>.png at the neutral and the peak frame: reference camera's depth map and the shaded mesh
+        renders=directory("results/{session}/reconstruct/{sequence}/renders"),
         metrics="results/{session}/reconstruct/{sequence}/sequence_metrics.json",
     log:
         "logs/{session}/reconstruct/{sequence}/summary.log",
@@ -69,7 +77,7 @@ rule reconstruct_summary:
 
 
 rule reconstruct_pool:
-    """Session-level reconstruction.skipped_frames and reconstruction.mean_coverage from every sequence."""
+    """Session-level reconstruction.skipped_frames, mean_coverage and stereo_consistency_mm from every sequence."""
     input:
         fragments=lambda wc: [f"results/{wc.session}/reconstruct/{seq}/sequence_metrics.json"
                               for seq in sequences(wc.session)],

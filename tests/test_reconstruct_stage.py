@@ -1,8 +1,9 @@
 """Stage test: a textured sphere session on disk (ray-cast ground truth) through the reconstruct stage.
 
-Checks the outputs (depth/points/mesh/coverage per frame, recon_summary.json, the metrics fragments), accuracy
-against the analytic sphere, depth_at through the written depth file, bad-input handling (skip / fail / cameras
-that do not match the session), and that the ground-truth keys come from the eval rules, not the stage.
+Checks the outputs (depth/points/mesh/coverage per frame, recon_summary.json, renders, the metrics fragments),
+the stereo consistency gate, accuracy against the analytic sphere, depth_at through the written depth file,
+bad-input handling (skip / fail / cameras that do not match the session), and that the ground-truth keys come
+from the eval rules, not the stage.
 """
 
 from __future__ import annotations
@@ -89,6 +90,36 @@ def test_outputs_exist_and_bad_frame_is_reported(stage_run):
     assert 0.5 < m["mean_coverage"] <= 1.0
 
 
+def test_stereo_consistency_is_the_stages_gate(stage_run):
+    """Per frame, per sequence (median of the frames) and pooled (the worst sequence); on the sphere (sensor
+    noise 1/255, depth error ~0.1 mm) the views' depths agree to a few tenths of a millimetre."""
+    out, metrics, records, summary, _ = stage_run
+    per_frame = [r["stereo_consistency_mm"] for r in records if not r["skipped"]]
+    assert len(per_frame) == 2 and all(0.0 < c < 0.4 for c in per_frame)
+    assert summary["stereo_consistency_mm"] == pytest.approx(np.median(per_frame))
+    m = metrics["reconstruction"]
+    assert m["sequences"]["seq"]["stereo_consistency_mm"] == pytest.approx(summary["stereo_consistency_mm"])
+    assert m["stereo_consistency_mm"] == pytest.approx(summary["stereo_consistency_mm"])
+
+
+def test_renders_at_neutral_and_peak_frame(stage_run):
+    """renders/<frame>.png for the neutral frame (0) and the peak (1: the sphere moved 2.7 mm; 2 is skipped),
+    seen by the most frontal camera of the arc: a depth panel and a shaded mesh panel, 480 px each."""
+    out, _, _, summary, _ = stage_run
+    r = summary["renders"]
+    assert (r["neutral"], r["peak"], r["reference_camera"]) == (0, 1, "cam02")
+    assert sorted(p.name for p in (out / "renders").iterdir()) == ["000000.png", "000001.png"]
+    assert 1.0 < r["displacement_mm"]["1"] < 3.0
+    img = cv2.imread(str(out / "renders" / "000001.png"))
+    assert img.shape == (360, 960, 3)
+    depth_panel, mesh_panel = img[30:330, :480].astype(int), img[30:330, 480:].astype(int)
+    # the sphere fills the middle of both panels: coloured depth (not grey) and lit grey surface
+    mid = (slice(120, 180), slice(210, 270))
+    assert np.ptp(depth_panel[mid], axis=-1).mean() > 40
+    assert mesh_panel[mid].mean() > 80 and np.ptp(mesh_panel[mid], axis=-1).max() < 5
+    assert mesh_panel[:20, :20].mean() < 40  # background
+
+
 def test_accuracy_against_analytic_sphere(stage_run):
     from rigbuild.io.ply import read_ply
 
@@ -137,8 +168,10 @@ def test_ground_truth_keys_come_from_the_eval_rules(stage_run, sphere_session, t
     out, metrics, records, summary, _ = stage_run
     root, _ = sphere_session
     stage_keys = set(flatten_metrics(metrics))
-    assert stage_keys == {"reconstruction.skipped_frames", "reconstruction.mean_coverage"} | {
-        f"reconstruction.sequences.seq.{k}" for k in ("mean_coverage", "seconds_per_frame", "frames", "skipped_frames")}
+    assert stage_keys == {"reconstruction.skipped_frames", "reconstruction.mean_coverage",
+                          "reconstruction.stereo_consistency_mm"} | {
+        f"reconstruction.sequences.seq.{k}" for k in ("mean_coverage", "stereo_consistency_mm", "seconds_per_frame",
+                                                      "frames", "skipped_frames")}
     assert not any("ground_truth" in r for r in records) and "ground_truth" not in summary
     gt = root / "ground_truth"
     frames = [f"{f:06d}" for f in (0, 1, 2)]

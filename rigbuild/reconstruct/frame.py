@@ -10,6 +10,7 @@ import numpy as np
 
 from rigbuild.camera import Camera
 from rigbuild.errors import InputError
+from rigbuild.reconstruct.consistency import stereo_consistency
 from rigbuild.reconstruct.filter import _map_views, consistency_filter, views_within_angle
 from rigbuild.reconstruct.fuse import (crop_mesh, keep_components, normalize_rows, pixel_normals, poisson_mesh, robust_bbox,
                                        tsdf_mesh, voxel_average)
@@ -27,7 +28,10 @@ class FrameReconstruction:
         (0 where no depth); n_views : (N, H, W) uint8 agreeing views; mask : (N, H, W) bool foreground.
     points, normals : (P, 3) fused oriented cloud; colors : (P, 3) float in [0, 1] (RGB).
     mesh_vertices (V, 3), mesh_faces (F, 3) : the surface, cropped to the head / object.
-    stats : coverage per view (fraction of foreground pixels with depth), counts and timings.
+    stats : coverage per view (fraction of foreground pixels with depth), ``stereo_consistency_mm`` and
+        ``stereo_consistency_p90_mm`` (median and 90th percentile of the cross-view disagreement of the
+        stereo's depth before filtering, :func:`rigbuild.reconstruct.consistency.stereo_consistency` over the
+        filter's check views; NaN when no pair overlaps), counts and timings.
     """
 
     cameras: list[Camera]
@@ -106,10 +110,11 @@ def reconstruct_frame(images: Sequence[np.ndarray | None], cameras: Sequence[Cam
     raw = [r.depth for r in results]
     scores = [r.score for r in results]
     t2, c2 = time.perf_counter(), time.process_time()
-    cons = consistency_filter(raw, pcams, views_within_angle(pcams, params.filter_max_angle_deg,
-                                                             params.filter_views),
-                              params.consistency_abs_mm, params.consistency_rel, params.min_views,
-                              params.threads)
+    check = views_within_angle(pcams, params.filter_max_angle_deg, params.filter_views)
+    # the stereo's own depth (before the filter keeps what agrees): the stage's no-ground-truth gate
+    agree = stereo_consistency(raw, pcams, check)
+    cons = consistency_filter(raw, pcams, check, params.consistency_abs_mm, params.consistency_rel,
+                              params.min_views, params.threads)
     pts, nrm, col = [], [], []
     for i, cam in enumerate(pcams):
         vv, uu = cons.pixels[i][:, 0], cons.pixels[i][:, 1]
@@ -153,6 +158,8 @@ def reconstruct_frame(images: Sequence[np.ndarray | None], cameras: Sequence[Cam
         "coverage": {c.id: float(x) for c, x in zip(pcams, coverage)},
         "raw_coverage": {c.id: float((r > 0).sum() / f) for c, r, f in zip(pcams, raw, fg)},
         "neighbours": {c.id: [pcams[j].id for j in nb] for c, nb in zip(pcams, nbrs)},
+        "stereo_consistency_mm": agree["median_mm"],
+        "stereo_consistency_p90_mm": agree["p90_mm"],
         "n_points": int(len(P)),
         "n_mesh_vertices": int(len(V)),
         "n_mesh_faces": int(len(F)),

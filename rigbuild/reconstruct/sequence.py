@@ -9,6 +9,7 @@ Outputs under ``out_dir`` (``results/<session>/reconstruct/<sequence>/``)::
     geometry/<frame:06d>.npz  the fused points and the mesh at full (float64) precision, for evaluation
     frames/<frame:06d>.json   frame record: stats and skip reason
     coverage.png              coverage per camera and frame (skipped frames marked)
+    renders/<frame:06d>.png   the neutral and the peak frame: reference camera's depth and the shaded mesh
     recon_summary.json        per-frame stats, skipped frames with reasons, summary
 
 Nothing here reads ground truth: the ``eval_reconstruction*`` rules (rules/eval_reconstruct.smk) score
@@ -187,7 +188,8 @@ def process_frame(frame: int, paths: Sequence[Path], cameras: Sequence[Camera], 
     with atomic_path(out / "coverage" / f"{f:06d}.png", suffix=".png") as tmp:
         cv2.imwrite(str(tmp), coverage_tiles(rec, images))
     record = {"frame": f, "skipped": None}
-    record.update({k: rec.stats[k] for k in ("coverage", "n_points", "n_mesh_vertices", "n_mesh_faces", "seconds",
+    record.update({k: rec.stats[k] for k in ("coverage", "stereo_consistency_mm", "stereo_consistency_p90_mm",
+                                             "n_points", "n_mesh_vertices", "n_mesh_faces", "seconds",
                                              "cpu_seconds", "neighbours")})
     msg = (f"{name} frame {f}: {rec.stats['n_points']} points, {rec.stats['n_mesh_faces']} faces, mean coverage "
            f"{np.mean(list(rec.stats['coverage'].values())):.3f}, {rec.stats['seconds']['total']:.1f} s")
@@ -195,15 +197,28 @@ def process_frame(frame: int, paths: Sequence[Path], cameras: Sequence[Camera], 
     return record
 
 
+def _nanmedian(values: Sequence[float | None]) -> float:
+    """Median of the finite values (None, as JSON stores NaN, counts as missing); NaN when none is."""
+    v = np.asarray([np.nan if x is None else float(x) for x in values], float)
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if len(v) else float("nan")
+
+
 def summarize_sequence(records: Sequence[dict], camera_ids: Sequence[str], out_dir: str | os.PathLike,
-                       name: str = "sequence") -> dict:
-    """Write ``coverage.png`` and ``recon_summary.json`` from the frame records; return the summary.
+                       name: str = "sequence", neutral_frame: int | None = None) -> dict:
+    """Write ``coverage.png``, ``renders/`` (:func:`rigbuild.reconstruct.renders.write_renders`, from the
+    frames' depth and mesh files; ``neutral_frame`` None: the first frame) and ``recon_summary.json`` from
+    the frame records; return the summary.
 
     Summary: ``frames``, ``reconstructed``, ``skipped`` {frame: reason}, ``mean_coverage``,
-    ``min_coverage``, ``seconds_per_frame``, ``per_frame`` (the frame records). The errors against ground
-    truth (synthetic sessions) are the ``eval_reconstruction_sequence`` rule's.
+    ``min_coverage``, ``stereo_consistency_mm`` (median over the reconstructed frames of their cross-view
+    depth disagreement, NaN if none has one), ``seconds_per_frame``, ``per_frame`` (the frame records). The
+    errors against ground truth (synthetic sessions) are the ``eval_reconstruction_sequence`` rule's;
+    ``renders``: the pictures' frames (``neutral``, ``peak``), ``reference_camera`` and each frame's
+    ``displacement_mm`` from the neutral mesh.
     """
     from rigbuild.io.atomic import write_json
+    from rigbuild.reconstruct.renders import write_renders
 
     records = sorted(records, key=lambda r: r["frame"])
     frames = [r["frame"] for r in records]
@@ -221,7 +236,10 @@ def summarize_sequence(records: Sequence[dict], camera_ids: Sequence[str], out_d
         "skipped": {str(f): why for f, why in skipped.items()},
         "mean_coverage": float(np.nanmean(cov)) if done else float("nan"),
         "min_coverage": float(np.nanmin(cov)) if done else float("nan"),
+        "stereo_consistency_mm": _nanmedian([r.get("stereo_consistency_mm") for r in done]),
         "seconds_per_frame": float(np.mean([r["seconds"]["total"] for r in done])) if done else float("nan"),
+        "renders": write_renders(out_dir, [r["frame"] for r in done],
+                                 frames[0] if neutral_frame is None or not frames else neutral_frame, name),
         "per_frame": {str(r["frame"]): r for r in records},
     }
     write_json(Path(out_dir) / SUMMARY_FILE, summary)

@@ -3,9 +3,10 @@
 - ``reconstruct_frame`` (session x sequence x frame): :func:`run_reconstruct_frame` -> the frame's files
   (:mod:`rigbuild.reconstruct.sequence`) and its record ``frames/<frame>.json``.
 - ``reconstruct_summary`` (session x sequence): :func:`run_reconstruct_summary` -> ``coverage.png``,
-  ``recon_summary.json`` and the fragment ``{"reconstruction": {"sequences": {<seq>: {...}}}}``.
+  ``renders/``, ``recon_summary.json`` and the fragment ``{"reconstruction": {"sequences": {<seq>: {...}}}}``.
 - ``reconstruct_pool`` (session): :func:`run_reconstruct_pool` -> the session-level stage keys
-  (``reconstruction.skipped_frames``, ``reconstruction.mean_coverage``) from the sequences' fragments.
+  (``reconstruction.skipped_frames``, ``reconstruction.mean_coverage``, ``reconstruction.stereo_consistency_mm``)
+  from the sequences' fragments.
 """
 
 from __future__ import annotations
@@ -61,14 +62,15 @@ def run_reconstruct_frame(session_dir: str | os.PathLike, sequence: str, frames:
 
 def sequence_metrics(summary: Mapping[str, Any]) -> dict[str, Any]:
     """``reconstruction.sequences.<seq>.*`` of one sequence summary (:func:`summarize_sequence`)."""
-    return {"mean_coverage": summary["mean_coverage"], "seconds_per_frame": summary["seconds_per_frame"],
-            "frames": len(summary["frames"]), "skipped_frames": len(summary["skipped"])}
+    return {"mean_coverage": summary["mean_coverage"], "stereo_consistency_mm": summary["stereo_consistency_mm"],
+            "seconds_per_frame": summary["seconds_per_frame"], "frames": len(summary["frames"]),
+            "skipped_frames": len(summary["skipped"])}
 
 
 def run_reconstruct_summary(session_dir: str | os.PathLike, sequence: str,
                             frame_jsons: Sequence[str | os.PathLike], out_dir: str | os.PathLike,
                             fragment_path: str | os.PathLike) -> dict:
-    """Frame records -> ``coverage.png`` and ``recon_summary.json`` in ``out_dir``, and the fragment
+    """Frame records -> ``coverage.png``, ``renders/`` and ``recon_summary.json`` in ``out_dir``, and the fragment
     ``{"reconstruction": {"sequences": {<sequence>: sequence_metrics}}}`` at ``fragment_path``.
     Returns the summary."""
     from rigbuild.io.metrics import write_metrics_fragment
@@ -77,7 +79,7 @@ def run_reconstruct_summary(session_dir: str | os.PathLike, sequence: str,
 
     spec = read_session(session_dir)
     records = [json.loads(Path(p).read_text()) for p in frame_jsons]
-    summary = summarize_sequence(records, spec.cameras, out_dir, sequence)
+    summary = summarize_sequence(records, spec.cameras, out_dir, sequence, spec.sequence(sequence).neutral_frame)
     write_metrics_fragment(fragment_path, STAGE_KEY, {"sequences": {sequence: sequence_metrics(summary)}})
     return summary
 
@@ -87,10 +89,14 @@ def _number(v: Any) -> float:
 
 
 def pool_sequences(per_seq: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
-    """Session-level stage keys from the per-sequence values (in session order): total skipped frames
-    and the mean of the sequences' mean coverage (NaN-skipping; a fragment stores NaN as null)."""
+    """Session-level stage keys from the per-sequence values (in session order): total skipped frames,
+    the mean of the sequences' mean coverage, and ``stereo_consistency_mm``, the worst (largest)
+    sequence's (a gate: one bad sequence is not averaged away). NaN-skipping; a fragment stores NaN as null."""
+    agree = [_number(v.get("stereo_consistency_mm")) for v in per_seq.values()]
+    agree = [a for a in agree if np.isfinite(a)]
     return {"skipped_frames": int(sum(v.get("skipped_frames", 0) for v in per_seq.values())),
-            "mean_coverage": float(np.nanmean([_number(v.get("mean_coverage")) for v in per_seq.values()]))}
+            "mean_coverage": float(np.nanmean([_number(v.get("mean_coverage")) for v in per_seq.values()])),
+            "stereo_consistency_mm": float(max(agree)) if agree else float("nan")}
 
 
 def run_reconstruct_pool(fragment_paths: Sequence[str | os.PathLike], out_path: str | os.PathLike) -> dict:
