@@ -226,7 +226,7 @@ def test_stage_job_runs_the_options_from_the_config_block(tmp_path):
     from rigbuild.io.curves import read_weight_curves_csv
     from rigbuild.io.markers import write_markers_npz
     from rigbuild.io.rigs import write_rig_npz
-    from rigbuild.retarget.stage import run_ribera
+    from rigbuild.retarget.stage import run_ribera, run_seol
 
     rig = procedural_head_rig()
     names = rig.marker_names
@@ -254,3 +254,18 @@ def test_stage_job_runs_the_options_from_the_config_block(tmp_path):
     assert out["plausible"][1]["meta"]["params"]["sparsity"] == "log"
     assert out["plausible"][1]["meta"]["params"]["antagonists"] is True
     assert out["plain"][1]["meta"]["params"]["sparsity"] == "l1"
+    # the fragments carry the numbers a real capture is judged by (report gates): plausibility and residual
+    for label in out:
+        frag = json.loads((tmp_path / label / "m.json").read_text())["retarget"]["rbf_baseline"]["head"]
+        assert 0.0 <= frag["antagonist_fraction"] <= 1.0
+        if label == "plausible":
+            assert frag["antagonist_fraction"] == 0.0
+        assert 0.1 < frag["marker_residual_mm"] < 1.0  # the 0.3 mm marker noise, per coordinate
+        assert frag["mean_active"] > 0
+    seol = {k: str(tmp_path / "seol" / f) for k, f in (("weights", "w.csv"), ("weights_json", "w.json"),
+                                                        ("gltf", "a.gltf"), ("plot", "v.png"), ("metrics", "m.json"),
+                                                        ("system", "s.npz"))}
+    run_seol(str(tmp_path / "perf.npz"), str(tmp_path / "char.npz"), [str(tmp_path / "rom.npz")], [0], "head", "perf",
+             {"weight_bounds": [0, 1.5], "sparsity": 0.5, "sparsity_mode": "log", "antagonists": True}, **seol)
+    frag = json.loads((tmp_path / "seol" / "m.json").read_text())["retarget"]["seol"]["head"]
+    assert frag["antagonist_fraction"] == 0.0 and 0.1 < frag["marker_residual_mm"] < 1.0

@@ -94,7 +94,8 @@ def make_training_set(
 @dataclass
 class RetargetResult:
     """weights (F, K); shape_names; stabilized performance markers (F, M, 3); the model; timings (s); frames
-    that had too few markers (their weights interpolated)."""
+    that had too few markers (their weights interpolated); the fit's RMS marker residual (mm, visible markers:
+    each frame rigidly aligned to its fitted expression ``a0 + sum_k w_k dp_k``)."""
 
     weights: np.ndarray
     shape_names: list[str]
@@ -102,6 +103,7 @@ class RetargetResult:
     model: RiberaModel
     timings: dict = field(default_factory=dict)
     empty_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    marker_residual_mm: float = float("nan")
 
 
 def retarget_performance(
@@ -189,6 +191,10 @@ def apply_model(
     w = interpolate_missing_rows(w, ok)
     t2 = time.perf_counter()
     stable, _, _ = stabilize(perf, training.neutral, model.rigidity)
+    expr = model.a0[None] + np.einsum("fk,kmc->fmc", w, model.dp)
+    fitted, _, _ = stabilize(perf[ok], expr[ok])
+    d2 = np.sum((fitted - expr[ok]) ** 2, axis=2)
+    residual = float(np.sqrt(np.nanmean(d2))) if np.isfinite(d2).any() else float("nan")
     return RetargetResult(w, list(model.shape_names), stable, model,
                           {"build_s": 0.0, "retarget_s": t2 - t1, "frames": int(perf.shape[0])},
-                          np.flatnonzero(~ok))
+                          np.flatnonzero(~ok), residual)

@@ -30,16 +30,27 @@ from rigbuild.retarget.params import ribera_from_config, seol_from_config
 Path = str | os.PathLike
 
 
+def plausibility_values(weights: np.ndarray, shape_names: Sequence[str]) -> dict[str, float]:
+    """The gates a real capture is judged by (no ground truth): the fraction of frames with an antagonist
+    pair both above 0.3 and the mean number of shapes above 0.1 (:func:`rigbuild.retarget.plausible.plausibility_metrics`)."""
+    from rigbuild.retarget.plausible import plausibility_metrics
+
+    m = plausibility_metrics(weights, shape_names)
+    return {"antagonist_fraction": m["antagonist_fraction"], "mean_active": m["mean_active"]}
+
+
 def ribera_job_metrics(res, n_markers: int) -> dict[str, Any]:
     """A Ribera job's numbers: timings (s), frames/s, frame and marker counts, weight range, the RMS second
-    difference of the weight curves (per frame^2) and the number of key expressions of the transfer."""
+    difference of the weight curves (per frame^2), the number of key expressions of the transfer, the fit's
+    RMS marker residual (mm) and the plausibility numbers (:func:`plausibility_values`)."""
     F = res.weights.shape[0]
     jitter = float(np.sqrt(np.mean(np.diff(res.weights, 2, axis=0) ** 2))) if F > 2 else 0.0
     values = {"build_s": res.timings["build_s"], "retarget_s": res.timings["retarget_s"],
               "frames_per_s": F / max(res.timings["retarget_s"], 1e-9), "n_frames": F,
               "n_markers": int(n_markers), "empty_frames": int(res.empty_frames.size),
               "weight_min": float(res.weights.min()), "weight_max": float(res.weights.max()),
-              "second_difference_rms": jitter}
+              "second_difference_rms": jitter, "marker_residual_mm": float(res.marker_residual_mm),
+              **plausibility_values(res.weights, res.shape_names)}
     if res.model.transfer is not None:
         values["n_keys"] = int(res.model.transfer.keys.size)
     return values
@@ -98,6 +109,16 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
     return values
 
 
+def seol_marker_residual(res) -> float:
+    """RMS marker residual (mm) of a Seol solution: ``|s_t - B w_t|`` per visible marker, in the source's
+    stabilized space (the scale-matched target shapes B)."""
+    S, B = res.system.S, res.system.B
+    d = (S - res.weights @ B.T).reshape(S.shape[0], -1, 3)
+    d2 = np.sum(d * d, axis=2)
+    vis = res.system.visibility
+    return float(np.sqrt(d2.mean() if vis is None else d2[vis].mean()))
+
+
 def seol_neutral(files: Sequence[Path], frames: Sequence[int] | None, names: Sequence[str]) -> np.ndarray:
     """The actor's neutral (M, 3) mm in ``names`` order: the rigidly aligned mean of row ``frames[i]`` of each
     tracked ROM marker file ``files[i]`` (default row 0 of each)."""
@@ -154,7 +175,10 @@ def run_seol(performance: Path, rig_path: Path, neutral: Sequence[Path] | None, 
                          res.head_rotation, res.head_translation, pivot=res.target_pivot)
     plot_velocity_error(plot, res.velocity_error, fps, title=f"{performance_name} -> {rig.name}")
     res.system.save(system)
-    values = {"seconds": seconds, "n_frames": int(X.shape[0]), "n_markers": len(names), "alpha": res.alpha}
+    values = {"seconds": seconds, "n_frames": int(X.shape[0]), "n_markers": len(names), "alpha": res.alpha,
+              "marker_residual_mm": seol_marker_residual(res),
+              "second_difference_rms": float(np.sqrt(np.mean(np.diff(res.weights, 2, axis=0) ** 2)))
+              if res.weights.shape[0] > 2 else 0.0, **plausibility_values(res.weights, res.shape_names)}
     per_result = {}
     for name, curve in res.velocity_error.items():
         W = res.weights if name == "spacetime" else res.baselines[name]
