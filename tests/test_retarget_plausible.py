@@ -30,9 +30,10 @@ def _kkt_violation(A, b, w, lo, hi):
 
 
 @pytest.mark.parametrize("warm", [False, True])
-def test_box_qp_with_per_frame_bounds_and_pinned_shapes_is_exact(warm):
-    rng = np.random.default_rng(0)
-    F, K = 40, 9
+@pytest.mark.parametrize("F", [1, 40])
+def test_box_qp_with_per_frame_bounds_and_pinned_shapes_is_exact(warm, F):
+    rng = np.random.default_rng(F)
+    K = 9
     C = rng.normal(size=(F, 14, K))
     A = np.einsum("fmk,fml->fkl", C, C) + 0.05 * np.eye(K)
     b = rng.normal(size=(F, K)) * 3

@@ -25,6 +25,12 @@ def _solve_free(A: np.ndarray, b: np.ndarray, free: np.ndarray, fixed_values: np
     """
     F, K = b.shape
     wf = np.where(free, 0.0, fixed_values)
+    if F == 1:  # one frame (retargeting one frame at a time): index the free set directly
+        i = np.flatnonzero(free[0])
+        if i.size:
+            A0 = A[0]
+            wf[0, i] = np.linalg.solve(A0[i[:, None], i], b[0, i] - A0[i] @ wf[0])
+        return wf
     rhs = b - (A @ wf[..., None])[..., 0]
     n_free = free.sum(1)
     m = int(n_free.max()) if F else 0
