@@ -427,6 +427,28 @@ def _landmark_alignment_from_landmarks(template: Rig, lm: LandmarkObservations, 
     return (s, R, t), aligned
 
 
+def _similarity_icp(template: Rig, sim: tuple[float, np.ndarray, np.ndarray], aligned: np.ndarray, tree: cKDTree,
+                    scan_points: np.ndarray, iterations: int = 15, keep_pct: float = 90.0
+                    ) -> tuple[tuple[float, np.ndarray, np.ndarray], np.ndarray]:
+    """Refine the landmark similarity on the scan: trimmed closest-point similarity ICP of the face region (the
+    ``keep_pct`` % nearest pairs), started from the landmarks' pose. The face's shape fixes the pose better than
+    the landmarks' few-mm noise: on a rendered ICT actor (bench_track's, seed 5) the template's face error after
+    the similarity went from 4.0 to 2.2 mm (keeping the landmarks in the fit at equal total weight: 3.3 mm;
+    70 % of the pairs: 2.6 mm; the registration's face error 2.7 -> 1.65 mm). A detector's landmarks share a
+    bias of a few mm (the whole set sits off the skin points the table names, while their residual to the
+    similarity is small), which the scan's shape corrects. An affine ``aligned`` (many reliable landmarks)
+    is kept as it is."""
+    s, R, t = sim
+    if not np.allclose(aligned, apply_rigid(template.neutral, R, t, s)):
+        return sim, aligned
+    P0 = template.neutral[template.face_vertices]
+    for _ in range(iterations):
+        d, j = tree.query(apply_rigid(P0, R, t, s))
+        keep = d <= max(np.percentile(d, keep_pct), 1e-9)
+        s, R, t = fit_similarity(P0[keep], scan_points[j[keep]])
+    return (s, R, t), apply_rigid(template.neutral, R, t, s)
+
+
 def _feature_terms(p: np.ndarray, mesh: TrackingMesh, lm_tri: np.ndarray, lm_bary: np.ndarray, lm: LandmarkObservations,
                    dots: np.ndarray, params: RegistrationParams, gate_mm: float) -> _DotTerms:
     """The ``landmarks`` level's constraints at the current tracking-mesh vertices ``p``: every landmark's table
@@ -578,9 +600,10 @@ def _register_from_landmarks(template: Rig, scan_points: np.ndarray, scan_normal
     from rigbuild.track.matches import closest_surface_points
 
     (s, R, t), aligned_full = _landmark_alignment_from_landmarks(template, lm, params)
+    tree = cKDTree(scan_points)
+    (s, R, t), aligned_full = _similarity_icp(template, (s, R, t), aligned_full, tree, scan_points)
     rest = mesh.local(aligned_full)
     solver = LaplacianSolver(rest, mesh.faces)
-    tree = cKDTree(scan_points)
     # the table's surface points on the tracking mesh (landmarks on untracked parts are dropped)
     at = np.einsum("nk,nkd->nd", lm.bary, aligned_full[lm.vertices])
     lm_tri, lm_bary, d = closest_surface_points(at, rest, mesh.faces)
