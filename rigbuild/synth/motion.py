@@ -7,6 +7,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from rigbuild.geometry.rigid import apply_rigid
+from rigbuild.retarget.plausible import ANTAGONISTS  # shape pairs a ROM never holds at once
 from rigbuild.rig import Rig
 
 
@@ -61,27 +62,6 @@ def apply_base_shapes(weights: np.ndarray, shape_names: Sequence[str],
 
 #: Lower-face shapes (jaw, lips, cheek puff): a ROM performs them a few at a time, one after another.
 LOWER_FACE_PREFIXES: tuple[str, ...] = ("jaw", "mouth", "cheekPuff", "tongue")
-
-#: unsided antagonist pairs
-_CENTRE_PAIRS = [("mouthLeft", "mouthRight"), ("jawLeft", "jawRight"), ("mouthFunnel", "mouthRollLower"),
-                 ("mouthFunnel", "mouthRollUpper"), ("mouthPucker", "mouthRollLower"), ("mouthPucker", "mouthRollUpper"),
-                 ("mouthClose", "mouthFunnel"), ("mouthRollLower", "mouthShrugLower"),
-                 ("mouthRollUpper", "mouthShrugUpper")]
-#: a centre shape against both sides of a sided one (``mouthPucker`` vs ``mouthStretch_L`` and ``_R``)
-_CENTRE_SIDED = [("mouthPucker", "mouthStretch"), ("mouthPucker", "mouthSmile"), ("mouthFunnel", "mouthPress"),
-                 ("mouthClose", "mouthLowerDown"), ("mouthClose", "mouthUpperUp"), ("mouthRollLower", "mouthLowerDown"),
-                 ("mouthRollUpper", "mouthUpperUp")]
-#: sided shapes against each other on the same side (``eyeBlink_L`` vs ``eyeWide_L``)
-_SAME_SIDE = [("mouthSmile", "mouthFrown"), ("mouthPress", "mouthLowerDown"), ("eyeBlink", "eyeWide"),
-              ("eyeSquint", "eyeWide"), ("eyeLookUp", "eyeLookDown"), ("eyeLookIn", "eyeLookOut"),
-              ("browDown", "browInnerUp"), ("browDown", "browOuterUp")]
-#: Shape pairs that pull the same tissue opposite ways (or put the lips through each other): a ROM never holds
-#: both at once.
-ANTAGONISTS: frozenset[frozenset[str]] = frozenset(
-    [frozenset(p) for p in _CENTRE_PAIRS]
-    + [frozenset((c, f"{s}_{side}")) for c, s in _CENTRE_SIDED for side in "LR"]
-    + [frozenset((f"{a}_{side}", f"{b}_{side}")) for a, b in _SAME_SIDE for side in "LR"]
-)
 
 
 def is_lower_face(name: str) -> bool:
