@@ -69,7 +69,7 @@ rule reconstruct_summary:
         "logs/{session}/reconstruct/{sequence}/summary.log",
     threads: 1
     resources:
-        mem_mb=500,
+        mem_mb=1000,  # the pictures: one frame's depth maps and mesh, the renderer's context
     conda:
         "../environment.yml"
     script:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from rigbuild.camera import Camera, look_at
-from rigbuild.reconstruct.consistency import pair_depth_differences, stereo_consistency
+from rigbuild.reconstruct.consistency import depth_differences, stereo_consistency, view_points
 
 W, H, F = 160, 120, 200.0
 
@@ -24,16 +24,16 @@ def test_plane_with_known_offset_gives_exactly_the_offset():
     a, b = _cam("a", (0, 0, 0)), _cam("b", (40, 0, 0))
     da = np.full((H, W), 500.0, np.float32)
     db = np.full((H, W), 500.7, np.float32)
-    d = pair_depth_differences(da, a, db, b)
+    d = depth_differences(view_points(da, a, None), db, b)
     assert np.allclose(d, 0.7, atol=2e-5)
     # disparity 40 * 200 / 500 = 16 px: the columns of a that land inside b (bilinear needs u < W - 1)
     assert abs(len(d) - (W - 16) * (H - 1)) <= H
-    out = stereo_consistency([da, db], [a, b], [[1], [0]], stride=1)
+    out = stereo_consistency([da, db], [a, b], [[1], [0]], max_pixels=None)
     assert out["median_mm"] == pytest.approx(0.7, abs=2e-5) and out["p90_mm"] == pytest.approx(0.7, abs=2e-5)
     assert out["n_pixels"] > 2 * (W - 17) * (H - 1) - 2 * H
-    # stride subsamples the pixels, not the answer
-    sub = stereo_consistency([da, db], [a, b], [[1], [0]], stride=3)
-    assert sub["median_mm"] == pytest.approx(0.7, abs=2e-5) and sub["n_pixels"] < out["n_pixels"] / 8
+    # sampling fewer pixels changes the count, not the answer
+    sub = stereo_consistency([da, db], [a, b], [[1], [0]], max_pixels=2000)
+    assert sub["median_mm"] == pytest.approx(0.7, abs=2e-5) and 1500 < sub["n_pixels"] < 2 * 2000
 
 
 def test_tilted_plane_agrees_across_views_and_holes_are_not_compared():
@@ -52,12 +52,12 @@ def test_tilted_plane_agrees_across_views_and_holes_are_not_compared():
         ray_w = ray_c @ cam.R  # world direction of each pixel's ray (z component 1 in the camera)
         depths.append((c - n @ cam.center) / (ray_w @ n))  # camera z of the plane along each ray
     depths = [d.astype(np.float32) for d in depths]
-    exact = stereo_consistency(depths, cams, [[1], [0]], stride=1)
+    exact = stereo_consistency(depths, cams, [[1], [0]], max_pixels=None)
     assert exact["n_pixels"] > 5000 and exact["median_mm"] < 1e-3
     holed = [d.copy() for d in depths]
     holed[1][:, : W // 2] = 0
     holed[1][holed[1] > 0] += 0.25
-    got = stereo_consistency(holed, cams, [[1], [0]], stride=1)
+    got = stereo_consistency(holed, cams, [[1], [0]], max_pixels=None)
     assert 0 < got["n_pixels"] < exact["n_pixels"] and got["median_mm"] == pytest.approx(0.25, abs=2e-3)
     none = stereo_consistency([depths[0], np.zeros_like(depths[1])], cams, [[1], [0]])
     assert np.isnan(none["median_mm"]) and none["n_pixels"] == 0

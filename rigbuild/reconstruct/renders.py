@@ -125,21 +125,25 @@ def write_renders(out_dir: str | os.PathLike, frames: Sequence[int], neutral_fra
     info: dict = {"neutral": None, "peak": None, "reference_camera": None, "displacement_mm": {}}
     if not frames:
         return info
-    meshes = {f: read_ply(out / "mesh" / f"{f:06d}.ply") for f in frames}
-    f0 = int(neutral_frame) if int(neutral_frame) in meshes else frames[0]
-    moved = {f: mean_displacement(meshes[f0]["vertices"], m["vertices"]) for f, m in meshes.items() if f != f0}
+    def mesh(f: int) -> dict:  # one frame's mesh in memory at a time
+        return read_ply(out / "mesh" / f"{f:06d}.ply")
+
+    f0 = int(neutral_frame) if int(neutral_frame) in frames else frames[0]
+    first = mesh(f0)
+    moved = {f: mean_displacement(first["vertices"], mesh(f)["vertices"]) for f in frames if f != f0}
     finite = {f: d for f, d in moved.items() if np.isfinite(d)}
     peak = max(finite, key=finite.__getitem__) if finite else None
     info.update(neutral=f0, peak=peak, displacement_mm={str(f): d for f, d in moved.items()})
     for f, label in ((f0, "neutral"), (peak, "peak")):
         if f is None:
             continue
+        m = first if f == f0 else mesh(f)
         d = read_depth_frame(out / "depth" / f"{f:06d}.npz")
         k = reference_view(d.cameras)
         info["reference_camera"] = d.cameras[k].id
         extra = f", {moved[f]:.1f} mm from neutral" if f in moved else ""
-        img = frame_picture(d.depth[k], meshes[f]["vertices"], meshes[f].get("faces", np.zeros((0, 3))),
-                            d.cameras[k], f"{name} frame {f} ({label}{extra}), {d.cameras[k].id}", width)
+        img = frame_picture(d.depth[k], m["vertices"], m.get("faces", np.zeros((0, 3))), d.cameras[k],
+                            f"{name} frame {f} ({label}{extra}), {d.cameras[k].id}", width)
         with atomic_path(out / "renders" / f"{f:06d}.png", suffix=".png") as tmp:
             cv2.imwrite(str(tmp), img)
     return info
