@@ -94,3 +94,36 @@ def test_mean_displacement_and_picture_layout():
     assert img.shape == (60, 160, 3) and img.dtype == np.uint8
     assert np.ptp(img[25, 30:50], axis=0).max() > 0  # the depth ramp is colour-mapped
     assert img[30, 120].mean() > img[2, 82].mean() + 30  # the lit quad over the background
+
+
+def test_write_renders_picks_the_neutral_and_the_farthest_frame(tmp_path):
+    """Four frames of a plane patch 400 mm in front of three cameras; frame 1 is the session's neutral, frame 3
+    moved 6 mm towards the cameras (2 moved 2 mm), frame 0 is not among the reconstructed frames passed."""
+    from rigbuild.io.depth import write_depth
+    from rigbuild.io.ply import write_ply
+    from rigbuild.reconstruct.renders import write_renders
+
+    cams = []
+    for k, x in enumerate((-150.0, 10.0, 150.0)):
+        R, t = look_at(np.array([x, 0.0, -400.0]), np.zeros(3))
+        cams.append(Camera(f"c{k}", W, H, _cam("x", (0, 0, 0)).K, np.zeros(5), R, t))
+    g = np.linspace(-40, 40, 21)
+    X, Y = np.meshgrid(g, g)
+    idx = np.arange(21 * 21).reshape(21, 21)
+    faces = np.concatenate([np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:]], -1).reshape(-1, 3),
+                            np.stack([idx[:-1, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 3)])
+    for f, dz in ((0, 0.0), (1, 0.0), (2, -2.0), (3, -6.0)):
+        V = np.stack([X.ravel(), Y.ravel(), np.full(X.size, dz)], 1)
+        write_ply(tmp_path / "mesh" / f"{f:06d}.ply", V, faces=faces)
+        depth = np.zeros((3, H, W), np.float32)
+        depth[:, 20:100, 30:130] = 400.0 + dz
+        write_depth(tmp_path / "depth" / f"{f:06d}.npz", cams, depth, (depth > 0).astype(np.float32), frame=f)
+    info = write_renders(tmp_path, [1, 2, 3], neutral_frame=1, name="rom00", width=120)
+    assert (info["neutral"], info["peak"], info["reference_camera"]) == (1, 3, "c1")
+    assert info["displacement_mm"]["3"] == pytest.approx(6.0, abs=1e-4)
+    assert info["displacement_mm"]["2"] == pytest.approx(2.0, abs=1e-4)
+    assert sorted(p.name for p in (tmp_path / "renders").iterdir()) == ["000001.png", "000003.png"]
+    # a skipped neutral frame: the first reconstructed frame stands in; nothing reconstructed: an empty folder
+    assert write_renders(tmp_path, [2, 3], neutral_frame=1)["neutral"] == 2
+    empty = tmp_path / "empty"
+    assert write_renders(empty, [], neutral_frame=0)["peak"] is None and not any((empty / "renders").iterdir())

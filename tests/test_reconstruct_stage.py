@@ -93,9 +93,10 @@ def test_outputs_exist_and_bad_frame_is_reported(stage_run):
 def test_stereo_consistency_is_the_stages_gate(stage_run):
     """Per frame, per sequence (median of the frames) and pooled (the worst sequence); on the sphere (sensor
     noise 1/255, depth error ~0.1 mm) the views' depths agree to a few tenths of a millimetre."""
-    out, metrics, records, summary, _ = stage_run
+    out, metrics, records, summary, logs = stage_run
     per_frame = [r["stereo_consistency_mm"] for r in records if not r["skipped"]]
     assert len(per_frame) == 2 and all(0.0 < c < 0.4 for c in per_frame)
+    assert sum("stereo consistency" in m for m in logs) == 2  # each frame's progress line
     assert summary["stereo_consistency_mm"] == pytest.approx(np.median(per_frame))
     m = metrics["reconstruction"]
     assert m["sequences"]["seq"]["stereo_consistency_mm"] == pytest.approx(summary["stereo_consistency_mm"])

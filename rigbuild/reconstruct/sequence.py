@@ -192,7 +192,8 @@ def process_frame(frame: int, paths: Sequence[Path], cameras: Sequence[Camera], 
                                              "n_points", "n_mesh_vertices", "n_mesh_faces", "seconds",
                                              "cpu_seconds", "neighbours")})
     msg = (f"{name} frame {f}: {rec.stats['n_points']} points, {rec.stats['n_mesh_faces']} faces, mean coverage "
-           f"{np.mean(list(rec.stats['coverage'].values())):.3f}, {rec.stats['seconds']['total']:.1f} s")
+           f"{np.mean(list(rec.stats['coverage'].values())):.3f}, stereo consistency "
+           f"{rec.stats['stereo_consistency_mm']:.3f} mm, {rec.stats['seconds']['total']:.1f} s")
     log(msg)
     return record
 
