@@ -2,6 +2,8 @@
 # Needs from common.smk: config["params"]["track"], session_dir(session), session_spec(session), SESSIONS.
 # Needs from the reconstruct rules: results/{session}/reconstruct/{sequence}/depth/{frame:06d}.npz.
 # Metrics: each job writes its own `tracking` fragment (*_metrics.json); track_metric_files() lists them.
+# params.track.registration.coarse: landmarks runs the face networks that `make setup` installs into the venv
+# (python -m rigbuild.assets.face_models install) with the template's committed landmark table.
 
 
 def _track_frame_images(session, seq_name, frames):
