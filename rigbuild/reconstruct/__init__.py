@@ -4,9 +4,11 @@
 - :mod:`.stereo` - coarse-to-fine plane sweep with NCC over neighbour views, sub-pixel refinement.
 - :mod:`.masks` - background masking, bad-image detection.
 - :mod:`.filter` - multi-view depth consistency and per-pixel fusion.
+- :mod:`.consistency` - the cross-view disagreement of the stereo's depth (the stage's gate, no ground truth).
 - :mod:`.fuse` - oriented point cloud, Poisson / TSDF surface, crop to the head.
 - :mod:`.frame` - one frame end to end (:func:`reconstruct_frame`).
 - :mod:`.sequence` - a ROM sequence: frame outputs, bad frames, the coverage summary.
+- :mod:`.renders` - the report's pictures: depth and shaded mesh at the neutral and the peak frame.
 - :mod:`.stage` - the Snakemake runners (frame job, sequence summary, session pooling).
 - :mod:`.lift` - :func:`depth_at`: 2-D image points -> 3-D through a depth map (for tracking).
 
