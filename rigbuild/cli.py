@@ -52,15 +52,17 @@ def _synth(args: argparse.Namespace) -> int:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from rigbuild.report.table import format_metrics_table
     from rigbuild.io.metrics import read_metrics
+    from rigbuild.report.table import format_metrics_table, format_summary
 
     path = Path(args.results) / args.session / "metrics.json"
     if not path.exists():
         print(f"{path}: no metrics yet (run snakemake first)", file=sys.stderr)
         return 1
-    table, n_fail = format_metrics_table(read_metrics(path))
-    print(table)
+    metrics = read_metrics(path)
+    summary, _ = format_summary(metrics)
+    table, n_fail = format_metrics_table(metrics)
+    print(summary + "\n\n" + table)
     return 1 if (n_fail and args.strict) else 0
 
 

@@ -94,5 +94,6 @@ def test_eval_prints_table_with_status(tmp_path, capsys):
     assert main(["eval", "s1", "--results", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "calibration.rms_px" in out and "pass" in out and "fail" in out
+    assert out.splitlines()[0] == "session fail"  # the report's summary comes first: the centre error fails
     assert main(["eval", "s1", "--results", str(tmp_path), "--strict"]) == 1
     assert main(["eval", "nosuch", "--results", str(tmp_path)]) == 1
