@@ -232,8 +232,10 @@ def main(argv=None):
         ap.error(f"unknown sections {unknown}; choose from {SECTIONS}")
     path = ROOT / "benchmarks" / "out" / "calibrate.json"
     out = json.loads(path.read_text()) if path.exists() and set(only) != set(SECTIONS) else {}
-    out["machine"] = (f"{os.cpu_count()} cores, OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}, "
-                      f"load average {os.getloadavg()[0]:.1f} at start")
+    from common import machine
+
+    out["machine"] = {**machine(), "openblas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
+                      "load_average_at_start": round(os.getloadavg()[0], 1)}
     out["sections_run"] = only
     if "timing" in only:
         print("== timing: 16 cameras x 30 poses, and growth")
