@@ -253,15 +253,15 @@ def test_pictures_are_embedded_downscaled_as_jpeg(tmp_path):
 
 
 def test_a_gate_measured_without_a_limit_is_shown_but_judges_nothing(tmp_path):
-    flat = {"reconstruction.stereo_consistency_mm": 0.2, "reconstruction.sequences.rom00.frames": 9}
+    flat = {"retarget.ribera.template.marker_residual_mm": 0.2, "retarget.ribera.template.n_frames": 9}
     rows, verdict = summarize(flat)
-    rec = next(r for r in rows if r.stage.id == "reconstruction")
-    assert rec.status == "" and rec.number.key == "reconstruction.stereo_consistency_mm" and rec.number.rule is None
+    ret = next(r for r in rows if r.stage.id == "retargeting")
+    assert ret.status == "" and ret.number.key == "retarget.ribera.template.marker_residual_mm" and ret.number.rule is None
     assert verdict == ""
     page = build_report(tmp_path, "s1", _nest(flat))
     assert '<span class="badge none">session not measured</span>' in page
-    assert ('<tr><td>stereo_consistency_mm</td><td class="num ">0.2</td><td><span class="badge none">no limit</span>'
-            in _section(page, "reconstruction"))
+    assert ('<tr><td>ribera.template.marker_residual_mm</td><td class="num ">0.2</td><td><span class="badge none">'
+            'no limit</span>' in _section(page, "retargeting"))
 
 
 def test_the_text_summary_has_one_line_per_stage_and_the_verdict_first():

@@ -33,7 +33,6 @@ STAGES = (
     Stage("calibration", "Calibration", "calibration",
           ("calibration.heldout_reprojection_rms_px", "calibration.rms_px", "calibration.n_gate_failures",
            "calibration.n_plausibility_flags")),
-    # reconstruction has no gate of its own yet: its stage writes no cross-view (stereo) consistency number
     Stage("reconstruction", "Reconstruction", "reconstruction", ("reconstruction.stereo_consistency_mm",)),
     Stage("tracking", "Tracking", "tracking", ("tracking.sequences.*.median_residual_mm", "tracking.lost_frames")),
     Stage("personalization", "Personalization", "personalization",
