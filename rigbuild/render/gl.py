@@ -29,21 +29,9 @@ import weakref
 import numpy as np
 
 from rigbuild.camera import Camera
-from rigbuild.render.common import (
-    RenderOptions,
-    RenderResult,
-    background_rgb,
-    empty_result,
-    finish_color,
-    finish_outputs,
-    light_in_camera,
-    lights_in_camera,
-    pixel_rays,
-    ring_search,
-    shadow_frame,
-    srgb_to_linear,
-    vogel_taps,
-)
+from rigbuild.render.common import (RenderOptions, RenderResult, background_rgb, empty_result, finish_color,
+                                    finish_outputs, light_in_camera, lights_in_camera, pixel_rays, ring_search,
+                                    shadow_frame, srgb_to_linear, vogel_taps)
 from rigbuild.render.mesh import TexturedMesh
 
 PINHOLE_MARGIN_PX = 2
