@@ -37,7 +37,10 @@ chown slurm:slurm "$STATE" "$STATE"/{ctld,spool,log,run}
 # --- munge: one key shared by every daemon on this single host
 mkdir -p /run/munge /var/log/munge /var/lib/munge
 chown munge:munge /run/munge /var/log/munge /var/lib/munge
-[ -s /etc/munge/munge.key ] || { mungekey --create --keyfile /etc/munge/munge.key; chown munge:munge /etc/munge/munge.key; chmod 400 /etc/munge/munge.key; }
+if [ ! -s /etc/munge/munge.key ]; then
+  mungekey --create --keyfile /etc/munge/munge.key
+  chown munge:munge /etc/munge/munge.key; chmod 400 /etc/munge/munge.key
+fi
 if ! munge -n 2>/dev/null | unmunge >/dev/null 2>&1; then
   log "starting munged"; started munged
   runuser -u munge -- /usr/sbin/munged
@@ -127,7 +130,9 @@ if ! pid_alive "$STATE/run/slurmctld.pid"; then
   slurmctld
 fi
 # daemons already running read a changed slurm.conf again
-if [ "$changed" = 1 ] && pid_alive "$STATE/run/slurmctld.pid"; then log "slurm.conf changed: scontrol reconfigure"; scontrol reconfigure; fi
+if [ "$changed" = 1 ] && pid_alive "$STATE/run/slurmctld.pid"; then
+  log "slurm.conf changed: scontrol reconfigure"; scontrol reconfigure
+fi
 if ! pid_alive "$STATE/run/slurmd.pid"; then
   log "starting slurmd"; started slurmd
   slurmd
@@ -141,6 +146,9 @@ case "$st" in
   idle*|mixed*|allocated*) ;;
   *) scontrol update nodename="$host" state=resume >/dev/null 2>&1 || true; sleep 1
      st=$(sinfo -h -n "$host" -o %T 2>/dev/null || true)
-     case "$st" in idle*|mixed*|allocated*) ;; *) die "node $host is '$st' (see $STATE/log/slurmd.log, slurmctld.log)";; esac ;;
+     case "$st" in
+       idle*|mixed*|allocated*) ;;
+       *) die "node $host is '$st' (see $STATE/log/slurmd.log, slurmctld.log)" ;;
+     esac ;;
 esac
 log "cluster rigbuild up: node $host, $NCPU CPUs, ${mem} MB, partition cpu ($st)"
