@@ -122,8 +122,10 @@ class RegistrationParams:
         triangulated face landmarks (:mod:`rigbuild.track.landmarks3d`) place the template (weighted similarity,
         then affine) and constrain their table surface points (``landmark_weight`` x the table's reliability);
         the dots are unlabeled features: each pulls the closest point of the current mesh (within the
-        iteration's gate, weight ``dot_weight``), never a fixed vertex; their labels (for the sequence
+        iteration's gate, weight ``feature_dot_weight``), never a fixed vertex; their labels (for the sequence
         tracker) are only read off the registered mesh at the end.
+    feature_dot_weight : weight of an unlabeled dot at the ``landmarks`` level (a triangulated dot, false
+        detections included, is no surer than a closest scan point nearby).
     landmark_min_reliability : landmarks below it do not take part in the initial alignment.
     stencil_prior_weight : ``landmarks`` level only: from the first ``relabel_at`` iteration on, each dot
         matched one to one (within ``stencil_gate_mm`` of the current mesh) to a stencil site (a painted dot
@@ -148,6 +150,7 @@ class RegistrationParams:
     landmark_weight: float = 1.0
     landmark_min_reliability: float = 0.2
     stencil_prior_weight: float = 0.0
+    feature_dot_weight: float = 1.0  # chosen on bench_track's registration scene (ICT actor seed 5, sigma 2 mm)
     stencil_gate_mm: float = 6.0
 
 

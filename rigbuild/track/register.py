@@ -453,7 +453,8 @@ def _feature_terms(p: np.ndarray, mesh: TrackingMesh, lm_tri: np.ndarray, lm_bar
                    dots: np.ndarray, params: RegistrationParams, gate_mm: float) -> _DotTerms:
     """The ``landmarks`` level's constraints at the current tracking-mesh vertices ``p``: every landmark's table
     point (lm_tri, lm_bary on the tracking mesh) to its triangulated position (weight landmark_weight x
-    reliability), every dot within ``gate_mm`` of the mesh to it from its closest mesh point (dot_weight)."""
+    reliability), every dot within ``gate_mm`` of the mesh to it from its closest mesh point
+    (feature_dot_weight)."""
     from rigbuild.track.matches import closest_surface_points
 
     tri, bary, d = closest_surface_points(dots, p, mesh.faces)
@@ -461,7 +462,8 @@ def _feature_terms(p: np.ndarray, mesh: TrackingMesh, lm_tri: np.ndarray, lm_bar
     none = np.zeros(0, np.int64)
     return _DotTerms(np.zeros(0, bool), np.concatenate([lm_tri, tri[ok]]), np.concatenate([lm_bary, bary[ok]]),
                      np.concatenate([lm.points, dots[ok]]), none, None, None, None, None,
-                     np.concatenate([params.landmark_weight * lm.weight, np.full(int(ok.sum()), params.dot_weight)]))
+                     np.concatenate([params.landmark_weight * lm.weight,
+                                     np.full(int(ok.sum()), params.feature_dot_weight)]))
 
 
 def _nonrigid_step(p: np.ndarray, it: int, params: RegistrationParams, solver: LaplacianSolver,
