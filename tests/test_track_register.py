@@ -88,7 +88,9 @@ def test_tracking_mesh_and_attachment(head):
     np.testing.assert_allclose(np.einsum("nk,nkd->nd", bary, moved[tm.faces[tri]]), moved)
 
 
-def test_register_neutral_to_warped_actor_scan(head):
+def _warped_actor_scan(head):
+    """A warped actor (seed 4) of ``head`` moved rigidly 400 mm in front of the camera, and a dense scan of its
+    face region: (truth (V, 3), face vertex ids, scan points (40000, 3), unit normals (40000, 3), the rng)."""
     from rigbuild.synth.actor import make_actor_rig
 
     actor, _ = make_actor_rig(head, seed=4)
@@ -103,6 +105,11 @@ def test_register_neutral_to_warped_actor_scan(head):
     pts = np.einsum("nk,nkd->nd", b, truth[F[tri]])
     nrm = np.einsum("nk,nkd->nd", b, N[F[tri]])
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    return truth, face, pts, nrm, rng
+
+
+def test_register_neutral_to_warped_actor_scan(head):
+    truth, face, pts, nrm, rng = _warped_actor_scan(head)
     dots = truth[head.marker_vertices][rng.permutation(head.marker_vertices.size)]
     reg = register_neutral(head, pts, nrm, dots, params=RegistrationParams(iterations=10))
     err = np.linalg.norm(reg.vertices[face] - truth[face], axis=1)
@@ -137,20 +144,7 @@ def test_register_neutral_with_stencil_dots_beats_markers_alone(head):
     registration where they are on the template) lowers the face-region error; the markers output stays the
     marker vertices."""
     from rigbuild.dots import painted_dot_vertices
-    from rigbuild.synth.actor import make_actor_rig
-
-    actor, _ = make_actor_rig(head, seed=4)
-    R, t = _rot(5), np.array([3.0, -8.0, 400.0])
-    truth = apply_rigid(actor.neutral, R, t)
-    face = head.face_vertices
-    F = head.faces[np.isin(head.faces, face).all(1)]
-    rng = np.random.default_rng(1)
-    tri = rng.integers(0, len(F), 40000)
-    b = rng.dirichlet([1, 1, 1], tri.size)
-    N = vertex_normals(truth, head.faces)
-    pts = np.einsum("nk,nkd->nd", b, truth[F[tri]])
-    nrm = np.einsum("nk,nkd->nd", b, N[F[tri]])
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    truth, face, pts, nrm, rng = _warped_actor_scan(head)
     errors = {}
     for spacing in (None, 16.0):
         dv = painted_dot_vertices(head, spacing)
