@@ -158,32 +158,28 @@ def _assert_nothing_written(out: Path):
     assert not [p for p in out.iterdir() if p.name.startswith(".calib")] if out.exists() else True
 
 
-def test_truncated_png_names_file(session, tmp_path):
+def _truncate(path: Path) -> None:
+    path.write_bytes(path.read_bytes()[:2000])
+
+
+def _garble(path: Path) -> None:
+    path.write_bytes(b"\x89PNG garbage" * 10 + b"IEND\xaeB`\x82")
+
+
+def _shrink(path: Path) -> None:
+    cv2.imwrite(str(path), cv2.resize(cv2.imread(str(path)), (320, 240)))
+
+
+@pytest.mark.parametrize("image,corrupt,message", [
+    ("cam02/5.png", _truncate, r"calib/cam02/5.png: truncated PNG"),
+    ("cam01/3.png", _garble, r"calib/cam01/3.png: unreadable image"),
+    ("cam03/0.png", _shrink, r"calib/cam03/0.png: image is 320x240 but session.yaml image_size is 640x480"),
+])
+def test_a_bad_calibration_image_is_named_and_nothing_is_written(session, tmp_path, image, corrupt, message):
     s = _copy(session, tmp_path)
-    bad = s / "calib" / "cam02" / "5.png"
-    bad.write_bytes(bad.read_bytes()[:2000])
+    corrupt(s / "calib" / image)
     out = tmp_path / "out"
-    with pytest.raises(InputError, match=r"calib/cam02/5.png: truncated PNG"):
-        run_calibrate(s, out / "calib", {})
-    _assert_nothing_written(out)
-
-
-def test_unreadable_image_names_file(session, tmp_path):
-    s = _copy(session, tmp_path)
-    bad = s / "calib" / "cam01" / "3.png"
-    bad.write_bytes(b"\x89PNG garbage" * 10 + b"IEND\xaeB`\x82")
-    out = tmp_path / "out"
-    with pytest.raises(InputError, match=r"calib/cam01/3.png: unreadable image"):
-        run_calibrate(s, out / "calib", {})
-    _assert_nothing_written(out)
-
-
-def test_mismatched_image_size_names_file(session, tmp_path):
-    s = _copy(session, tmp_path)
-    bad = s / "calib" / "cam03" / "0.png"
-    cv2.imwrite(str(bad), cv2.resize(cv2.imread(str(bad)), (320, 240)))
-    out = tmp_path / "out"
-    with pytest.raises(InputError, match=r"calib/cam03/0.png: image is 320x240 but session.yaml image_size is 640x480"):
+    with pytest.raises(InputError, match=message):
         run_calibrate(s, out / "calib", {})
     _assert_nothing_written(out)
 

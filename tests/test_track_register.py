@@ -144,6 +144,7 @@ def test_register_neutral_with_stencil_dots_beats_markers_alone(head):
     registration where they are on the template) lowers the face-region error; the markers output stays the
     marker vertices."""
     from rigbuild.dots import painted_dot_vertices
+
     truth, face, pts, nrm, rng = _warped_actor_scan(head)
     errors = {}
     for spacing in (None, 16.0):
