@@ -49,6 +49,8 @@ TOLERANCES = [
     # -0.5 .. -4.3, second differences 0.021 .. 0.095 between identical runs; their errors and correlations
     # within 0.06 absolute
     (r"^retarget\.ribera_paper\..*\.(weight_min|weight_max|second_difference_rms)$", None, None),
+    # their shapes active per frame (a count; measured on 2 local runs at a later commit): 21.6 vs 24.4, 1.24 vs 1.0
+    (r"^retarget\.(ribera_paper|ribera_activation)\..*\.mean_active$", 0.4, 0.0),
     (r"^retarget\.(ribera_paper|ribera_activation)\.", 0.0, 0.2),  # 0.058 absolute (weight_mae)
     (r"^retarget\.noconst\..*\.weight_min$", 0.35, 0.0),  # 11 % (unconstrained least squares)
     (r"^retarget\.", 0.15, 0.02),  # 4.7 % (ribera unobservable_mae), 0.005 absolute (weight_mae)
