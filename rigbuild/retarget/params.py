@@ -312,6 +312,12 @@ def _one_of(value: Any, allowed: tuple, where: str) -> None:
         raise InputError(f"'{where}' is {value!r}", path="config", fix=f"use one of {list(allowed)}")
 
 
+def _choices(p: Any, where: str, **allowed) -> None:
+    """:func:`_one_of` for each field of ``p`` named in ``allowed`` (field -> its allowed values)."""
+    for field_name, values in allowed.items():
+        _one_of(getattr(p, field_name), values, f"{where}.{field_name}")
+
+
 def _interval(value: Any, where: str, optional: bool) -> None:
     if value is None and optional:
         return
@@ -320,11 +326,8 @@ def _interval(value: Any, where: str, optional: bool) -> None:
 
 
 def check_ribera(p: RiberaParams, where: str = f"{WHERE}.ribera") -> RiberaParams:
-    _one_of(p.guess, GUESSES, f"{where}.guess")
-    _one_of(p.fit_guess, GUESSES, f"{where}.fit_guess")
-    _one_of(p.ceg_reference, CEG_REFERENCES, f"{where}.ceg_reference")
-    _one_of(p.rigid, RIGID_MODES, f"{where}.rigid")
-    _one_of(p.sparsity, SPARSITY_MODES, f"{where}.sparsity")
+    _choices(p, where, guess=GUESSES, fit_guess=GUESSES, ceg_reference=CEG_REFERENCES, rigid=RIGID_MODES,
+             sparsity=SPARSITY_MODES)
     plausible = p.sparsity != "l1" or p.antagonists or p.still_gate
     if plausible and (p.bounds is None or p.bounds[0] is None or p.bounds[0] < 0):
         raise InputError(f"'{where}': sparsity, antagonists and still_gate need bounds from 0, got {p.bounds!r}",
@@ -335,12 +338,8 @@ def check_ribera(p: RiberaParams, where: str = f"{WHERE}.ribera") -> RiberaParam
 
 
 def check_seol(p: SeolParams, where: str = f"{WHERE}.seol") -> SeolParams:
-    _one_of(p.boundary_values, BOUNDARY_VALUES, f"{where}.boundary_values")
-    _one_of(p.gaps, GAP_MODES, f"{where}.gaps")
-    _one_of(p.rigid_weights, RIGID_WEIGHTS, f"{where}.rigid_weights")
-    _one_of(p.scale_match, SCALE_MATCH_MODES, f"{where}.scale_match")
-    _one_of(p.scale_match_kernel, SCALE_MATCH_KERNELS, f"{where}.scale_match_kernel")
-    _one_of(p.sparsity_mode, SPARSITY_MODES, f"{where}.sparsity_mode")
+    _choices(p, where, boundary_values=BOUNDARY_VALUES, gaps=GAP_MODES, rigid_weights=RIGID_WEIGHTS,
+             scale_match=SCALE_MATCH_MODES, scale_match_kernel=SCALE_MATCH_KERNELS, sparsity_mode=SPARSITY_MODES)
     if (p.sparsity_mode != "l1" or p.antagonists) and (p.weight_bounds is None or p.weight_bounds[0] < 0):
         raise InputError(f"'{where}': sparsity_mode log and antagonists need weight_bounds from 0, got "
                          f"{p.weight_bounds!r}", path="config", fix="set weight_bounds: [0, 1.5]")
