@@ -88,12 +88,12 @@ def test_tracking_mesh_and_attachment(head):
     np.testing.assert_allclose(np.einsum("nk,nkd->nd", bary, moved[tm.faces[tri]]), moved)
 
 
-def _warped_actor_scan(head):
-    """A warped actor (seed 4) of ``head`` moved rigidly 400 mm in front of the camera, and a dense scan of its
+def _warped_actor_scan(head, seed=4):
+    """A warped actor (``seed``) of ``head`` moved rigidly 400 mm in front of the camera, and a dense scan of its
     face region: (truth (V, 3), face vertex ids, scan points (40000, 3), unit normals (40000, 3), the rng)."""
     from rigbuild.synth.actor import make_actor_rig
 
-    actor, _ = make_actor_rig(head, seed=4)
+    actor, _ = make_actor_rig(head, seed=seed)
     R, t = _rot(5), np.array([3.0, -8.0, 400.0])
     truth = apply_rigid(actor.neutral, R, t)
     face = head.face_vertices
@@ -180,18 +180,9 @@ def test_closest_point_targets_gate_distance_and_normal_angle():
 
 
 def _warped_scan(head, seed=4):
-    from rigbuild.synth.actor import make_actor_rig
-
-    actor, _ = make_actor_rig(head, seed=seed)
-    truth = apply_rigid(actor.neutral, _rot(5), np.array([3.0, -8.0, 400.0]))
-    F = head.faces[np.isin(head.faces, head.face_vertices).all(1)]
-    rng = np.random.default_rng(1)
-    tri = rng.integers(0, len(F), 40000)
-    b = rng.dirichlet([1, 1, 1], tri.size)
-    N = vertex_normals(truth, head.faces)
-    pts = np.einsum("nk,nkd->nd", b, truth[F[tri]])
-    nrm = np.einsum("nk,nkd->nd", b, N[F[tri]])
-    return truth, F, pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+    """:func:`_warped_actor_scan` as (truth, the face-region triangles, scan points, unit normals)."""
+    truth, face, pts, nrm, _ = _warped_actor_scan(head, seed)
+    return truth, head.faces[np.isin(head.faces, face).all(1)], pts, nrm
 
 
 @pytest.mark.parametrize("n_landmarks, bound_mm", [(60, 2.5), (150, 2.5)])
