@@ -174,7 +174,8 @@ def test_per_sequence_and_per_character_keys_are_grids_and_the_demo_page_is_comp
     assert re.findall(r"<tr><th>(cam\d+)</th>", cam) == ["cam00", "cam01"] and "<th>heldout_camera_rms_px</th>" in cam
     ret = _section(page, "retargeting").split('<table class="grid">', 1)[1].split("</table>", 1)[0]
     assert "<tr><th>ribera / template</th>" in ret and "<tr><th>seol / sculpted</th>" in ret
-    assert len(flat) == 569 and page.count("<tr") < 180  # 569 keys, one table row per sequence / method+character
+    # one table row per sequence / method+character: a third of a row per key or less (committed demo: 691 keys, 198 rows)
+    assert len(flat) > 500 and page.count("<tr") < len(flat) / 3
     # every key is on the page: a grid or list cell titled with it, or a gate / ground-truth row naming it
     for key in flat:
         stage, short = key.split(".", 1)
