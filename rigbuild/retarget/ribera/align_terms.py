@@ -97,7 +97,8 @@ def align_system(
     activations: np.ndarray | None = None,
     targets: np.ndarray | None = None,
 ) -> tuple[sp.csr_matrix, np.ndarray]:
-    """Normal equations of E_Align (eq. 4) = E_Match + alpha E_Mesh + beta E_CEG (+ epsilon |dp - dg|^2).
+    """Normal equations of E_Align (eq. 4) = E_Match + alpha E_Mesh + beta E_CEG (+ epsilon |dp - dg|^2),
+    assembled sparse from :func:`align_terms` (``A = diag(d) + I_K (x) C + Bk (x) I_M``, ``B = R``).
 
     Unknown ordering ``index = k * M + m``; the same (MK x MK) matrix serves x, y and z. da_keys (F', M, 3)
     (NaN gaps), sim_keys (K, F'), masks (K, M), lap (M, M). Returns A (MK, MK) and B (MK, 3).
@@ -105,26 +106,8 @@ def align_system(
     With ``activations`` h (K, F') and ``targets`` r (K, F', M, 3) the match term becomes the activation-aware
     ``(1/F) sum c~_kf |h_kf dp_k - diag(u_k) r_kf|^2`` (see :func:`transfer_blendshapes`, ``match``).
     """
-    K, M, _ = ds.shape
-    d_match, b_match = match_terms(da_keys, sim_keys, masks, activations, targets)
-    LtL = (lap.T @ lap).tocsr()
-    G = cross_expression_laplacian(shape_correlation_matrix(ds))
-    GtG = G.T @ G
-    IK = sp.identity(K, format="csr")
-    IM = sp.identity(M, format="csr")
-    A = (
-        sp.diags(d_match.ravel() + params.epsilon)
-        + (params.alpha / M) * sp.kron(IK, LtL, format="csr")
-        + (params.beta / M) * sp.kron(sp.csr_matrix(GtG), IM, format="csr")
-    )
-    ref = ds if params.ceg_reference == "character" else dg
-    B = np.empty((K * M, 3))
-    for c in range(3):
-        g = dg[..., c]
-        B[:, c] = (
-            b_match[..., c].ravel()
-            + params.epsilon * g.ravel()
-            + (params.alpha / M) * (LtL @ g.T).T.ravel()
-            + (params.beta / M) * (GtG @ ref[..., c]).ravel()
-        )
-    return A.tocsr(), B
+    d, C, Bk, R = align_terms(ds, dg, da_keys, sim_keys, masks, lap, params, activations, targets)
+    K, M = d.shape
+    A = (sp.diags(d.ravel()) + sp.kron(sp.identity(K, format="csr"), sp.csr_matrix(C), format="csr")
+         + sp.kron(sp.csr_matrix(Bk), sp.identity(M, format="csr"), format="csr"))
+    return A.tocsr(), R.reshape(K * M, 3)
