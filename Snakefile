@@ -17,6 +17,7 @@ include: "rules/personalize.smk"
 include: "rules/characters.smk"
 include: "rules/retarget.smk"
 include: "rules/retarget_seol.smk"
+include: "rules/retarget_actor_rig.smk"
 include: "rules/eval.smk"
 include: "rules/report.smk"
 

@@ -190,7 +190,30 @@ def eval_retarget_metric_files(session):
     if not is_synthetic(session):
         return []
     return [f"results/{session}/eval/retarget/{method}/{perf}/{character}/retarget_metrics.json"
-            for perf in performances(session)[:1] for character in CHARACTERS for method in PIPELINE_METHODS]
+            for perf in performances(session)[:1] for character in CHARACTERS for method in PIPELINE_METHODS] + \
+        [f"results/{session}/eval/actor_rig/{perf}/actor_rig_metrics.json" for perf in performances(session)[:1]]
+
+
+rule eval_actor_rig:
+    """The actor weights solved from the personalized rig vs the true performance weights, and the marker map vs
+    the markers' true skin points: retarget.actor_rig_weights.{weight_mae, mean_correlation, marker_map_error_mm}."""
+    input:
+        weights="results/{session}/actor_rig/{performance}/weights.csv",
+        marker_map="results/{session}/actor_rig/{performance}/marker_map.json",
+        truth=lambda wc: ground_truth_file(wc.session, f"performances/{wc.performance}.npz"),
+        actor_rig=lambda wc: ground_truth_file(wc.session, "actor_rig.npz"),
+    output:
+        metrics="results/{session}/eval/actor_rig/{performance}/actor_rig_metrics.json",
+        details="results/{session}/eval/actor_rig/{performance}/actor_rig_eval.json",
+    log:
+        "logs/{session}/eval/actor_rig/{performance}.log",
+    threads: 1
+    resources:
+        mem_mb=1000,
+    conda:
+        "../environment.yml"
+    script:
+        "../scripts/eval_actor_rig.py"
 
 
 rule eval_retarget:

@@ -22,7 +22,8 @@ def retarget_metric_files(session):
     """The retargeting jobs' metrics fragments of a session (every method, every character). Metric keys name
     the method and the character, not the performance: only the first performance's jobs are gathered."""
     return [results(session, "retarget", method, perf, character, "retarget_metrics.json")
-            for perf in performances(session)[:1] for character in CHARACTERS for method in PIPELINE_METHODS]
+            for perf in performances(session)[:1] for character in CHARACTERS for method in PIPELINE_METHODS] + \
+        actor_rig_metric_files(session)
 
 
 rule retarget_ribera:

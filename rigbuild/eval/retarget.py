@@ -144,3 +144,74 @@ def run_eval_retarget(weights_csv: str | os.PathLike, truth_npz: str | os.PathLi
     write_metrics_fragment(metrics_path, "retarget",
                            method_metrics(method, character, {k: m[k] for k in FRAGMENT_KEYS}, primary))
     return m
+
+
+def true_marker_placement(actor, truth: Mapping[str, np.ndarray], frame: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Where each performance marker truly sits on the actor's skin: (face ids (M,), barycentric (M, 3)) on the
+    actor's rig, from one frame of the clean ground-truth markers brought back by the true head motion
+    (``q = R^T (x - t)``) onto the actor posed with the true weights (the closest point is the marker's own
+    skin point: the generator places markers on the skin). truth: ``ground_truth/performances/<perf>.npz``."""
+    from rigbuild.geometry.mesh import closest_surface_points
+
+    names = [str(s) for s in truth["shape_names"]]
+    rig = actor.subset(names)
+    w = np.asarray(truth["weights"], dtype=np.float64)[frame]
+    q = (np.asarray(truth["markers"], dtype=np.float64)[frame] - truth["translation"][frame]) @ truth["rotation"][frame]
+    posed = rig.neutral + np.einsum("k,kvc->vc", w, rig.deltas)
+    face_ids, bary, _ = closest_surface_points(posed, rig.faces, q)
+    return face_ids, bary
+
+
+def marker_map_errors(marker_map: Mapping[str, Any], actor, truth: Mapping[str, np.ndarray],
+                      path: str | os.PathLike | None = None) -> np.ndarray:
+    """(M,) mm: distance on the actor's true neutral between each marker's point in ``marker_map``
+    (``marker_map.json``'s ``markers``: face and barycentric on the personalized rig, which shares the actor's
+    topology) and its true skin point (:func:`true_marker_placement`), in the ground truth's marker order."""
+    from rigbuild.geometry.mesh import points_on_surface
+
+    names = [str(s) for s in truth["marker_names"]]
+    missing = [n for n in names if n not in marker_map]
+    if missing:
+        raise InputError(f"the marker map lacks the performance's markers {missing[:6]}", path=path)
+    if int(max(marker_map[n]["face"] for n in names)) >= actor.faces.shape[0]:
+        raise InputError("the marker map's triangles are not the actor's (another topology)", path=path,
+                         fix="evaluate a map made on a rig of the actor's topology")
+    faces = np.array([int(marker_map[n]["face"]) for n in names])
+    bary = np.array([marker_map[n]["barycentric"] for n in names], dtype=np.float64)
+    true_faces, true_bary = true_marker_placement(actor, truth)
+    est = points_on_surface(actor.neutral, actor.faces, faces, bary)
+    ref = points_on_surface(actor.neutral, actor.faces, true_faces, true_bary)
+    return np.linalg.norm(est - ref, axis=1)
+
+
+def run_eval_actor_rig(weights_csv: str | os.PathLike, marker_map_json: str | os.PathLike,
+                       truth_npz: str | os.PathLike, actor_rig: str | os.PathLike, metrics_path: str | os.PathLike,
+                       details_path: str | os.PathLike) -> dict:
+    """Rule ``eval_actor_rig``: the actor weights solved from the personalized rig vs the true performance
+    weights (:func:`retarget_metrics`), and the marker map vs the markers' true skin points
+    (:func:`marker_map_errors`). Fragment ``retarget.actor_rig_weights.{weight_mae, mean_correlation,
+    unobservable_mae, marker_map_error_mm, marker_map_p95_error_mm}``; every number at ``details_path``."""
+    import json
+
+    from rigbuild.io.atomic import write_json
+    from rigbuild.io.curves import read_weight_curves_csv
+    from rigbuild.io.metrics import write_metrics_fragment
+    from rigbuild.io.rigs import read_rig_npz
+
+    w, names, _ = read_weight_curves_csv(weights_csv)
+    with np.load(truth_npz, allow_pickle=False) as z:
+        truth = {k: z[k] for k in z.files}
+    tn = [str(s) for s in truth["shape_names"]]
+    actor = read_rig_npz(actor_rig)
+    sub = actor.subset(tn)
+    m = retarget_metrics(w, names, truth["weights"].astype(np.float64), tn, sub.deltas[:, sub.marker_vertices],
+                         weights_csv, truth_npz)
+    doc = json.loads(open(marker_map_json).read())
+    err = marker_map_errors(doc.get("markers", {}), actor, truth, marker_map_json)
+    m["marker_map_error_mm"] = float(err.mean())
+    m["marker_map_p95_error_mm"] = float(np.percentile(err, 95))
+    m["marker_map_errors_mm"] = {str(n): float(e) for n, e in zip(truth["marker_names"], err)}
+    write_json(details_path, {"method": "actor_rig", **m})
+    keys = FRAGMENT_KEYS + ("marker_map_error_mm", "marker_map_p95_error_mm")
+    write_metrics_fragment(metrics_path, "retarget", {"actor_rig_weights": {k: m[k] for k in keys}})
+    return m

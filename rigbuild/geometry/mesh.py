@@ -40,3 +40,40 @@ def point_cloud_normals(points: np.ndarray, orient: np.ndarray, k: int = 40) -> 
     n = vec[:, :, 0]
     sign = np.sign(np.einsum("nd,nd->n", n, np.asarray(orient, dtype=np.float64)))
     return n * np.where(sign == 0, 1.0, sign)[:, None]
+
+
+def points_on_surface(vertices: np.ndarray, faces: np.ndarray, face_ids: np.ndarray, barycentric: np.ndarray,
+                      normal_offset: np.ndarray | None = None) -> np.ndarray:
+    """Points (..., N, 3) given by triangle ``face_ids`` (N,) and ``barycentric`` (N, 3) on a mesh whose
+    ``vertices`` are (..., V, 3) (one mesh or a batch of poses of one topology), moved ``normal_offset`` (N,)
+    mm along each triangle's unit normal (the normal of that pose)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    tri = np.asarray(faces, dtype=np.int64)[np.asarray(face_ids, dtype=np.int64)]  # (N, 3)
+    corners = v[..., tri, :]  # (..., N, 3, 3)
+    p = np.einsum("...nkc,nk->...nc", corners, np.asarray(barycentric, dtype=np.float64))
+    if normal_offset is not None:
+        n = np.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :])
+        n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
+        p = p + np.asarray(normal_offset, dtype=np.float64)[:, None] * n
+    return p
+
+
+def closest_surface_points(vertices: np.ndarray, faces: np.ndarray,
+                           points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The closest point on a triangle mesh to each of ``points`` (N, 3): (face ids (N,), barycentric (N, 3),
+    signed distance (N,) along the triangle's normal, mm; positive on the side the normal points to)."""
+    import igl
+
+    V = np.ascontiguousarray(vertices, dtype=np.float64)
+    F = np.ascontiguousarray(faces, dtype=np.int64)
+    P = np.ascontiguousarray(points, dtype=np.float64)
+    _, tri, closest = igl.point_mesh_squared_distance(P, V, F)
+    tri = np.asarray(tri, dtype=np.int64).reshape(-1)
+    closest = np.ascontiguousarray(closest, dtype=np.float64).reshape(-1, 3)
+    f = F[tri]
+    bary = np.asarray(igl.barycentric_coordinates(closest, np.ascontiguousarray(V[f[:, 0]]),
+                                                  np.ascontiguousarray(V[f[:, 1]]),
+                                                  np.ascontiguousarray(V[f[:, 2]]))).reshape(-1, 3)
+    n = np.cross(V[f[:, 1]] - V[f[:, 0]], V[f[:, 2]] - V[f[:, 0]])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    return tri, bary, np.einsum("nc,nc->n", P - closest, n)

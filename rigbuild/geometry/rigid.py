@@ -63,3 +63,29 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
     s = np.linalg.norm(np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])) / 2.0
     return float(np.degrees(np.arctan2(s, c)))
+
+
+def fit_rigid_motion_batched(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted Kabsch for a batch: ``(R_b, t_b)`` minimizing ``sum_i w_bi ||R_b src_bi + t_b - dst_bi||^2``.
+
+    src, dst : (B, N, 3); weights : (B, N) >= 0 (0 for a missing point; NaN in ``dst`` where ``w = 0`` is
+    ignored). Returns R (B, 3, 3) (det +1), t (B, 3). A batch item with weights summing to 0 gets the identity.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    dst = np.where(w[..., None] > 0, np.asarray(dst, dtype=np.float64), 0.0)
+    wsum = w.sum(1)
+    ok = wsum > 0
+    ws = np.where(ok, wsum, 1.0)[:, None]
+    mu_s = np.einsum("bn,bnc->bc", w, src) / ws
+    mu_d = np.einsum("bn,bnc->bc", w, dst) / ws
+    cov = np.einsum("bn,bni,bnj->bij", w, dst - mu_d[:, None], src - mu_s[:, None]) / ws[:, :, None]
+    U, _, Vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    d = np.where(d == 0, 1.0, d)
+    U[:, :, 2] *= d[:, None]
+    R = U @ Vt
+    R[~ok] = np.eye(3)
+    t = mu_d - np.einsum("bij,bj->bi", R, mu_s)
+    t[~ok] = 0.0
+    return R, t

@@ -15,8 +15,11 @@ from typing import Any, Mapping
 RIBERA_METHODS = ["ribera", "ribera_activation", "ribera_fit", "rbf", "deformation"]
 #: the method of rule ``retarget_seol`` (Seol et al. 2012 spacetime expression cloning)
 SEOL_METHOD = "seol"
+#: the method of rule ``retarget_semantic``: the actor weights solved from the personalized rig
+#: (rule ``actor_rig_weights``) carried to a character by shape name
+SEMANTIC_METHOD = "semantic_actor_rig"
 #: every method run per (performance, character), in report order
-PIPELINE_METHODS = RIBERA_METHODS + [SEOL_METHOD]
+PIPELINE_METHODS = RIBERA_METHODS + [SEOL_METHOD, SEMANTIC_METHOD]
 #: the Ribera variants one of which is ``params.retarget.ribera.primary``
 RIBERA_VARIANTS = ("ribera", "ribera_activation", "ribera_fit")
 #: the Ribera variant whose numbers are also reported as ``retarget.ribera.*`` (the default of ``primary``)
@@ -27,7 +30,8 @@ PRIMARY_PREFIX = "ribera"
 #: method -> metric prefix of its own numbers (``retarget.<prefix>.<character>.*``); ``ribera`` runs the paper
 #: with its own constants (:meth:`rigbuild.retarget.params.RiberaParams.for_method`): ``ribera_paper``
 METHOD_KEYS = {"ribera": "ribera_paper", "ribera_activation": "ribera_activation", "ribera_fit": "ribera_fit",
-               "rbf": "rbf_baseline", "deformation": "deformation_baseline", "seol": "seol"}
+               "rbf": "rbf_baseline", "deformation": "deformation_baseline", "seol": "seol",
+               "semantic_actor_rig": "semantic_actor_rig"}
 #: Seol job: result (spacetime solution or sec. 7 baseline) -> metric prefix
 SEOL_RESULT_KEYS = {
     "spacetime": "seol",

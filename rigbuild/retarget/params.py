@@ -298,12 +298,44 @@ class SeolParams:
     coherence_frames: float = 4.0
 
 
+# ----------------------------------------------------------------------------- the actor's own rig
+@dataclass
+class ActorRigParams:
+    """Marker-space weights from the personalized rig (``params.retarget.actor_rig``, rule ``actor_rig_weights``;
+    :mod:`rigbuild.retarget.actor_rig`).
+
+    lambda_t : temporal coherence ``lambda_t sum ||w_f - w_(f-1)||^2`` (mm^2, against the data term's squared
+        marker residuals in mm^2); lambda_l1 : sparsity ``lambda_l1 sum_k w_k`` (mm^2; the L1 norm, linear
+        because ``w >= 0``); lambda_s : Ma et al. 2016's ``lambda_s (1^T w)^2`` (mm^2);
+    bounds : [lo, hi] of the weights; sweeps, tol : the block-coordinate solve stops when no weight moves more
+        than ``tol`` in a sweep (at most ``sweeps``);
+    marker_lowpass_hz : zero-phase Gaussian low-pass of the markers before the solve (-3 dB, Hz; None: off);
+    map_frames : frames of the take spread evenly over it that place the markers on the rig; map_iterations :
+        rounds of (solve those frames, move each marker to its closest point on the posed rig);
+    observable_mm : a shape that moves no marker this much at weight 1 is held at 0;
+    max_surface_distance_mm : a marker whose placed point is farther from the rig's skin is reported (warning).
+    """
+
+    lambda_t: float = 0.0
+    lambda_l1: float = 0.5
+    lambda_s: float = 0.0
+    marker_lowpass_hz: Optional[float] = 5.0
+    bounds: list = field(default_factory=lambda: [0.0, 1.0])
+    sweeps: int = 60
+    tol: float = 1e-4
+    map_frames: int = 24
+    map_iterations: int = 2
+    observable_mm: float = 0.05
+    max_surface_distance_mm: float = 8.0
+
+
 @dataclass
 class RetargetStageParams:
     """The whole ``params.retarget`` block."""
 
     ribera: RiberaParams = field(default_factory=RiberaParams)
     seol: SeolParams = field(default_factory=SeolParams)
+    actor_rig: ActorRigParams = field(default_factory=ActorRigParams)
 
 
 # ----------------------------------------------------------------------------------------- checks
@@ -356,6 +388,28 @@ def check_seol(p: SeolParams, where: str = f"{WHERE}.seol") -> SeolParams:
     return p
 
 
+def check_actor_rig(p: ActorRigParams, where: str = f"{WHERE}.actor_rig") -> ActorRigParams:
+    _interval(p.bounds, f"{where}.bounds", optional=False)
+    if not p.bounds[0] < p.bounds[1]:
+        raise InputError(f"'{where}.bounds' must have lo < hi, got {p.bounds!r}", path="config", fix="e.g. [0, 1]")
+    for name in ("lambda_t", "lambda_l1", "lambda_s", "tol", "observable_mm", "max_surface_distance_mm"):
+        v = getattr(p, name)
+        if not isinstance(v, (int, float)) or v < 0:
+            raise InputError(f"'{where}.{name}' must be a number >= 0, got {v!r}", path="config")
+    for name in ("sweeps", "map_frames", "map_iterations"):
+        v = getattr(p, name)
+        if not isinstance(v, int) or v < 1:
+            raise InputError(f"'{where}.{name}' must be an integer >= 1, got {v!r}", path="config")
+    return p
+
+
+def actor_rig_from_config(values: Mapping[str, Any] | None) -> ActorRigParams:
+    """``params.retarget.actor_rig`` -> :class:`ActorRigParams` (checked)."""
+    if isinstance(values, ActorRigParams):
+        return check_actor_rig(values)
+    return check_actor_rig(from_mapping(ActorRigParams, values, f"{WHERE}.actor_rig"))
+
+
 def ribera_from_config(values: Mapping[str, Any] | None) -> RiberaParams:
     """``params.retarget.ribera`` -> :class:`RiberaParams` (checked)."""
     if isinstance(values, RiberaParams):
@@ -376,4 +430,5 @@ def from_config(values: Mapping[str, Any] | None) -> RetargetStageParams:
     p = from_mapping(RetargetStageParams, {k: (v or {}) for k, v in dict(values or {}).items()}, WHERE)
     check_ribera(p.ribera)
     check_seol(p.seol)
+    check_actor_rig(p.actor_rig)
     return p

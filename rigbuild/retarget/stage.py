@@ -192,3 +192,106 @@ def run_seol(performance: Path, rig_path: Path, neutral: Sequence[Path] | None, 
         character, X.shape[0], seconds, per_result["spacetime"]["velocity_error"],
         per_result["perframe_range"]["velocity_error"], per_result["perframe_prior"]["velocity_error"])
     return {"seol": values, **per_result}
+
+
+# ------------------------------------------------------------------------------- the actor's own rig
+def run_actor_rig(performance: Path, rig_path: Path, actor_rig: Mapping[str, Any] | None, performance_name: str, *,
+                  marker_map: Path, weights: Path, weights_json: Path, solve: Path, metrics: Path) -> dict[str, Any]:
+    """Rule ``actor_rig_weights``: a take's markers placed on the personalized rig and the actor's weights
+    solved from that rig (:mod:`rigbuild.retarget.actor_rig`).
+
+    performance : .c3d/.npz markers (any rigid frame, NaN gaps); rig_path : the personalized ``rig.npz`` (its
+    marker set names the take's markers and starts the map); actor_rig : ``params.retarget.actor_rig``.
+    Writes ``marker_map.json`` (marker -> face, barycentric, normal offset on the rig), the weight curves (CSV,
+    JSON, the rig's shape order), ``solve.npz`` (weights (F, K), rotations (F, 3, 3), translations (F, 3) mm:
+    rig frame -> take frame, residual_mm (F,)) and the metrics fragment ``retarget.actor_rig_weights``."""
+    from rigbuild.io.atomic import save_npz, write_json
+    from rigbuild.retarget.actor_rig import fit_marker_map, marker_map_for_take, sample_rig_at_markers, solve_actor_weights
+    from rigbuild.retarget.common import lowpass_markers
+    from rigbuild.retarget.params import actor_rig_from_config
+
+    p = actor_rig_from_config(actor_rig)
+    take = read_markers(performance)
+    rig = read_rig_npz(rig_path)
+    if rig.units != "mm":
+        rig = rig.to_units("mm")
+    start = marker_map_for_take(rig, take.names, path=rig_path)
+    P = take.markers if p.marker_lowpass_hz is None else lowpass_markers(take.markers, take.fps, p.marker_lowpass_hz)
+    t0 = time.perf_counter()
+    mmap = fit_marker_map(rig.neutral, rig.deltas, rig.faces, P, take.names, start, n_frames=p.map_frames,
+                          iterations=p.map_iterations, lambda_l1=p.lambda_l1, bounds=p.bounds,
+                          observable_mm=p.observable_mm)
+    t1 = time.perf_counter()
+    b0, D = sample_rig_at_markers(rig.neutral, rig.deltas, rig.faces, mmap)
+    sol = solve_actor_weights(b0, D, P, lambda_t=p.lambda_t, lambda_l1=p.lambda_l1, lambda_s=p.lambda_s,
+                              bounds=p.bounds, sweeps=p.sweeps, tol=p.tol, observable_mm=p.observable_mm)
+    t2 = time.perf_counter()
+    far = [n for n, o in zip(mmap.names, mmap.normal_offset) if abs(o) > p.max_surface_distance_mm]
+    log = logging.getLogger("rigbuild.retarget.actor_rig")
+    if far:
+        log.warning("%s: markers %s sit more than %.1f mm off the personalized rig's skin (%s): mislabelled or "
+                    "loose markers, or a rig that does not fit this actor", performance, far[:6],
+                    p.max_surface_distance_mm, rig_path)
+    if not sol.converged:
+        log.warning("%s: the actor-rig solve stopped after %d sweeps before every weight settled to %.0e "
+                    "(params.retarget.actor_rig.sweeps)", performance, sol.sweeps, p.tol)
+    write_json(marker_map, {"rig": str(rig_path), "performance": str(performance), "frame": "the rig's (head) frame",
+                            "surface_rms_mm": mmap.surface_rms_mm, "markers": mmap.to_json()})
+    meta = {"method": "actor_rig", "rig": str(rig_path), "params": as_dict(p)}
+    write_weight_curves_csv(weights, sol.weights, rig.shape_names, take.fps)
+    write_weight_curves_json(weights_json, sol.weights, rig.shape_names, take.fps, meta=meta)
+    save_npz(solve, weights=sol.weights, rotations=sol.rotations, translations=sol.translations,
+             residual_mm=sol.residual_mm, observable=sol.observable, shape_names=np.asarray(rig.shape_names),
+             marker_names=np.asarray(mmap.names), fps=np.float64(take.fps))
+    F = sol.weights.shape[0]
+    values = {"n_frames": F, "n_markers": len(mmap.names), "map_s": t1 - t0, "solve_s": t2 - t1,
+              "frames_per_s": F / max(t2 - t1, 1e-9), "sweeps": sol.sweeps, "converged": sol.converged,
+              "marker_residual_mm": float(np.nanmean(sol.residual_mm)),
+              "map_surface_rms_mm": mmap.surface_rms_mm, "markers_off_skin": len(far),
+              "weight_min": float(sol.weights.min()), "weight_max": float(sol.weights.max()),
+              **plausibility_values(sol.weights, rig.shape_names)}
+    write_metrics_fragment(metrics, "retarget", {"actor_rig_weights": values})
+    log.info("%s: %d markers placed on the personalized rig in %.2f s; %d frames solved in %.2f s (%.0f frames/s), "
+             "residual %.2f mm", performance_name, len(mmap.names), t1 - t0, F, t2 - t1, values["frames_per_s"],
+             values["marker_residual_mm"])
+    return values
+
+
+def run_semantic(actor_weights: Path, solve: Path, rig_path: Path, actor_rig_path: Path, character: str,
+                 performance_name: str, *, weights: Path, weights_json: Path, gltf: Path, preview: Path,
+                 metrics: Path) -> dict[str, Any]:
+    """Rule ``retarget_semantic``: the actor weights (from the personalized rig) carried to a character by shape
+    name (:func:`rigbuild.retarget.actor_rig.semantic_transfer`), with the take's head motion; metrics under
+    ``retarget.semantic_actor_rig.<character>``."""
+    from rigbuild.io.curves import read_weight_curves_csv
+    from rigbuild.retarget.actor_rig import semantic_transfer
+    from rigbuild.retarget.methods import method_metrics
+    from rigbuild.retarget.preview import write_preview
+
+    t0 = time.perf_counter()
+    W, names, _ = read_weight_curves_csv(actor_weights)
+    with np.load(solve) as z:
+        fps = float(z["fps"])
+    rig = read_rig_npz(rig_path)
+    Wc, shared = semantic_transfer(W, names, rig.shape_names)
+    seconds = time.perf_counter() - t0
+    write_weight_curves_csv(weights, Wc, rig.shape_names, fps)
+    write_weight_curves_json(weights_json, Wc, rig.shape_names, fps,
+                             meta={"method": "semantic_actor_rig", "character": rig.name, "actor_weights": str(actor_weights),
+                                   "shared_shapes": len(shared)})
+    write_gltf_animation(gltf, rig, Wc, fps)
+    actor = read_rig_npz(actor_rig_path)
+    activity = np.abs(Wc).sum(1)
+    frames = sorted(set(np.argsort(-activity)[:4].tolist()))
+    if actor.marker_vertices.size:
+        neutral = actor.neutral[actor.marker_vertices]
+        posed = neutral[None] + np.einsum("fk,kmc->fmc", W, actor.deltas[:, actor.marker_vertices])
+        write_preview(preview, posed, neutral, rig, Wc, frames, fps,
+                      title=f"{performance_name} -> {rig.name} (semantic_actor_rig)")
+    else:
+        raise InputError("the personalized rig has no marker set to preview the actor with", path=actor_rig_path)
+    values = {"seconds": seconds, "n_frames": int(Wc.shape[0]), "shared_shapes": len(shared),
+              "character_shapes": len(rig.shape_names), "weight_min": float(Wc.min()), "weight_max": float(Wc.max()),
+              **plausibility_values(Wc, rig.shape_names)}
+    write_metrics_fragment(metrics, "retarget", method_metrics("semantic_actor_rig", character, values))
+    return values
