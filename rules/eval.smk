@@ -191,22 +191,28 @@ def eval_retarget_metric_files(session):
         return []
     return [f"results/{session}/eval/retarget/{method}/{perf}/{character}/retarget_metrics.json"
             for perf in performances(session)[:1] for character in CHARACTERS for method in PIPELINE_METHODS] + \
-        [f"results/{session}/eval/actor_rig/{perf}/actor_rig_metrics.json" for perf in performances(session)[:1]]
+        [f"results/{session}/eval/{source}/{perf}/actor_rig_metrics.json" for perf in performances(session)[:1]
+         for source in ACTOR_RIG_SOURCES]
 
 
 rule eval_actor_rig:
-    """The actor weights solved from the personalized rig vs the true performance weights, and the marker map vs
-    the markers' true skin points: retarget.actor_rig_weights.{weight_mae, mean_correlation, marker_map_error_mm}."""
+    """The actor weights solved from the personalized (or the template) rig vs the true performance weights, and
+    the marker map vs the markers' true skin points: retarget.<source>_weights.{weight_mae, mean_correlation,
+    marker_map_error_mm}."""
     input:
-        weights="results/{session}/actor_rig/{performance}/weights.csv",
-        marker_map="results/{session}/actor_rig/{performance}/marker_map.json",
+        weights="results/{session}/{source}/{performance}/weights.csv",
+        marker_map="results/{session}/{source}/{performance}/marker_map.json",
         truth=lambda wc: ground_truth_file(wc.session, f"performances/{wc.performance}.npz"),
         actor_rig=lambda wc: ground_truth_file(wc.session, "actor_rig.npz"),
     output:
-        metrics="results/{session}/eval/actor_rig/{performance}/actor_rig_metrics.json",
-        details="results/{session}/eval/actor_rig/{performance}/actor_rig_eval.json",
+        metrics="results/{session}/eval/{source}/{performance}/actor_rig_metrics.json",
+        details="results/{session}/eval/{source}/{performance}/actor_rig_eval.json",
+    params:
+        source=lambda wc: wc.source,
     log:
-        "logs/{session}/eval/actor_rig/{performance}.log",
+        "logs/{session}/eval/{source}/{performance}.log",
+    wildcard_constraints:
+        source="|".join(ACTOR_RIG_SOURCES),
     threads: 1
     resources:
         mem_mb=1000,

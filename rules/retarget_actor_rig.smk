@@ -5,33 +5,47 @@
 # CHARACTERS, results(); personalize.smk writes results/{session}/personalize/rig.npz; characters.smk
 # results/{session}/characters/{character}.npz. Params: config["params"]["retarget"]["actor_rig"]
 # (rigbuild/retarget/params.py ActorRigParams). Ground truth: rule eval_actor_rig (eval.smk).
-from rigbuild.retarget.methods import SEMANTIC_METHOD
+from rigbuild.retarget.methods import ACTOR_RIG_SOURCES, SEMANTIC_METHOD
 
 
 def actor_rig_metric_files(session):
-    """The actor-rig jobs' metrics fragments (keys name no performance: the first performance's job)."""
-    return [results(session, "actor_rig", perf, "actor_rig_metrics.json") for perf in performances(session)[:1]]
+    """The actor-rig jobs' metrics fragments, personalized and template rig (keys name no performance: the
+    first performance's jobs)."""
+    return [results(session, source, perf, "actor_rig_metrics.json") for perf in performances(session)[:1]
+            for source in ACTOR_RIG_SOURCES]
+
+
+def _actor_rig_spec(wc):
+    """The rig an actor_rig_weights job reads: the personalized rig, or (the baseline without personalization)
+    the template rig the personalization started from (rules/personalize.smk)."""
+    if wc.source == "actor_rig":
+        return f"results/{wc.session}/personalize/rig.npz"
+    return _personalize_template_rig(wc)
 
 
 rule actor_rig_weights:
     """Place the take's markers on the personalized rig (marker_map.json) and solve the actor's weights and
-    head motion from that rig, every frame at once."""
+    head motion from that rig, every frame at once; source template_rig: the same with the template rig."""
     input:
         performance=lambda wc: performance_file(wc.session, wc.performance),
-        rig="results/{session}/personalize/rig.npz",
+        rig=lambda wc: [_actor_rig_spec(wc)] if wc.source == "actor_rig" else rig_source_files(_actor_rig_spec(wc)),
     output:
-        marker_map="results/{session}/actor_rig/{performance}/marker_map.json",
-        weights="results/{session}/actor_rig/{performance}/weights.csv",
-        weights_json="results/{session}/actor_rig/{performance}/weights.json",
-        solve="results/{session}/actor_rig/{performance}/solve.npz",
-        metrics="results/{session}/actor_rig/{performance}/actor_rig_metrics.json",
+        marker_map="results/{session}/{source}/{performance}/marker_map.json",
+        weights="results/{session}/{source}/{performance}/weights.csv",
+        weights_json="results/{session}/{source}/{performance}/weights.json",
+        solve="results/{session}/{source}/{performance}/solve.npz",
+        metrics="results/{session}/{source}/{performance}/actor_rig_metrics.json",
     params:
         actor_rig=lambda wc: config["params"]["retarget"].get("actor_rig", {}),
         performance=lambda wc: wc.performance,
+        rig=_actor_rig_spec,
+        source=lambda wc: wc.source,
     log:
-        "logs/{session}/actor_rig/{performance}.log",
+        "logs/{session}/{source}/{performance}.log",
     benchmark:
-        "results/{session}/benchmarks/actor_rig.{performance}.tsv"
+        "results/{session}/benchmarks/{source}.{performance}.tsv"
+    wildcard_constraints:
+        source="|".join(ACTOR_RIG_SOURCES),
     threads: 1
     resources:
         mem_mb=2000,

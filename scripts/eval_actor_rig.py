@@ -12,9 +12,10 @@ from rigbuild.logs import run_logged
 
 def main(smk) -> None:
     i = smk.input
-    m = run_eval_actor_rig(i.weights, i.marker_map, i.truth, i.actor_rig, smk.output.metrics, smk.output.details)
-    logging.info("actor-rig weights vs ground truth: MAE %.4f, mean correlation %.3f; marker map %.2f mm mean",
-                 m["weight_mae"], m["mean_correlation"], m["marker_map_error_mm"])
+    m = run_eval_actor_rig(i.weights, i.marker_map, i.truth, i.actor_rig, smk.output.metrics, smk.output.details,
+                           source=str(smk.params.source))
+    logging.info("%s weights vs ground truth: MAE %.4f, mean correlation %.3f; marker map %.2f mm mean",
+                 smk.params.source, m["weight_mae"], m["mean_correlation"], m["marker_map_error_mm"])
 
 
 run_logged(snakemake, main)  # noqa: F821

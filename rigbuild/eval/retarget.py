@@ -162,35 +162,49 @@ def true_marker_placement(actor, truth: Mapping[str, np.ndarray], frame: int = 0
     return face_ids, bary
 
 
-def marker_map_errors(marker_map: Mapping[str, Any], actor, truth: Mapping[str, np.ndarray],
-                      path: str | os.PathLike | None = None) -> np.ndarray:
-    """(M,) mm: distance on the actor's true neutral between each marker's point in ``marker_map``
-    (``marker_map.json``'s ``markers``: face and barycentric on the personalized rig, which shares the actor's
-    topology) and its true skin point (:func:`true_marker_placement`), in the ground truth's marker order."""
+def marker_map_errors(marker_map: Mapping[str, Any], actor, truth: Mapping[str, np.ndarray], rig=None,
+                      path: str | os.PathLike | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """How far each marker of ``marker_map`` (``marker_map.json``'s ``markers``: face, barycentric and normal
+    offset on ``rig``, which shares the actor's topology) is from its true skin point
+    (:func:`true_marker_placement`), in the ground truth's marker order: (position (M,), skin (M,)) mm.
+
+    position : the marker's point on the rig's neutral, the rig brought onto the actor's neutral by the rigid
+        motion that best aligns their face-region vertices (all vertices without a face region), against the
+        true point on the actor's neutral: what a marker map gives a solver (the rig's own error included);
+    skin : the map's triangle and barycentric coordinates on the actor's neutral against the true ones: where
+        on the skin the marker was placed, whatever the rig's shape (None ``rig``: the actor's).
+    """
     from rigbuild.geometry.mesh import points_on_surface
+    from rigbuild.geometry.rigid import fit_rigid_motion
 
     names = [str(s) for s in truth["marker_names"]]
     missing = [n for n in names if n not in marker_map]
     if missing:
         raise InputError(f"the marker map lacks the performance's markers {missing[:6]}", path=path)
-    if int(max(marker_map[n]["face"] for n in names)) >= actor.faces.shape[0]:
-        raise InputError("the marker map's triangles are not the actor's (another topology)", path=path,
+    rig = actor if rig is None else rig
+    if rig.n_vertices != actor.n_vertices or int(max(marker_map[n]["face"] for n in names)) >= actor.faces.shape[0]:
+        raise InputError("the marker map's rig is not of the actor's topology", path=path,
                          fix="evaluate a map made on a rig of the actor's topology")
     faces = np.array([int(marker_map[n]["face"]) for n in names])
     bary = np.array([marker_map[n]["barycentric"] for n in names], dtype=np.float64)
+    offset = np.array([float(marker_map[n].get("normal_offset_mm", 0.0)) for n in names])
     true_faces, true_bary = true_marker_placement(actor, truth)
-    est = points_on_surface(actor.neutral, actor.faces, faces, bary)
     ref = points_on_surface(actor.neutral, actor.faces, true_faces, true_bary)
-    return np.linalg.norm(est - ref, axis=1)
+    skin = np.linalg.norm(points_on_surface(actor.neutral, actor.faces, faces, bary) - ref, axis=1)
+    region = actor.face_region if actor.face_region is not None else np.arange(actor.n_vertices)
+    R, t = fit_rigid_motion(rig.neutral[region], actor.neutral[region])
+    placed = points_on_surface(rig.neutral, rig.faces, faces, bary, offset) @ R.T + t
+    return np.linalg.norm(placed - ref, axis=1), skin
 
 
 def run_eval_actor_rig(weights_csv: str | os.PathLike, marker_map_json: str | os.PathLike,
                        truth_npz: str | os.PathLike, actor_rig: str | os.PathLike, metrics_path: str | os.PathLike,
-                       details_path: str | os.PathLike) -> dict:
-    """Rule ``eval_actor_rig``: the actor weights solved from the personalized rig vs the true performance
-    weights (:func:`retarget_metrics`), and the marker map vs the markers' true skin points
-    (:func:`marker_map_errors`). Fragment ``retarget.actor_rig_weights.{weight_mae, mean_correlation,
-    unobservable_mae, marker_map_error_mm, marker_map_p95_error_mm}``; every number at ``details_path``."""
+                       details_path: str | os.PathLike, source: str = "actor_rig") -> dict:
+    """Rule ``eval_actor_rig``: the actor weights solved from a rig (the personalized one, or the template for
+    ``source`` ``template_rig``) vs the true performance weights (:func:`retarget_metrics`), and the marker map
+    vs the markers' true skin points (:func:`marker_map_errors`; the map's ``rig`` is read from the map).
+    Fragment ``retarget.<source>_weights.{weight_mae, mean_correlation, unobservable_mae, marker_map_error_mm,
+    marker_map_p95_error_mm, marker_map_skin_error_mm}``; every number at ``details_path``."""
     import json
 
     from rigbuild.io.atomic import write_json
@@ -206,12 +220,16 @@ def run_eval_actor_rig(weights_csv: str | os.PathLike, marker_map_json: str | os
     sub = actor.subset(tn)
     m = retarget_metrics(w, names, truth["weights"].astype(np.float64), tn, sub.deltas[:, sub.marker_vertices],
                          weights_csv, truth_npz)
+    from rigbuild.io.rigs import load_rig
+
     doc = json.loads(open(marker_map_json).read())
-    err = marker_map_errors(doc.get("markers", {}), actor, truth, marker_map_json)
+    rig = load_rig(doc["rig"], units="mm") if "rig" in doc else None
+    err, skin = marker_map_errors(doc.get("markers", {}), actor, truth, rig, marker_map_json)
     m["marker_map_error_mm"] = float(err.mean())
     m["marker_map_p95_error_mm"] = float(np.percentile(err, 95))
+    m["marker_map_skin_error_mm"] = float(skin.mean())
     m["marker_map_errors_mm"] = {str(n): float(e) for n, e in zip(truth["marker_names"], err)}
-    write_json(details_path, {"method": "actor_rig", **m})
-    keys = FRAGMENT_KEYS + ("marker_map_error_mm", "marker_map_p95_error_mm")
-    write_metrics_fragment(metrics_path, "retarget", {"actor_rig_weights": {k: m[k] for k in keys}})
+    write_json(details_path, {"method": source, **m})
+    keys = FRAGMENT_KEYS + ("marker_map_error_mm", "marker_map_p95_error_mm", "marker_map_skin_error_mm")
+    write_metrics_fragment(metrics_path, "retarget", {f"{source}_weights": {k: m[k] for k in keys}})
     return m

@@ -18,6 +18,9 @@ SEOL_METHOD = "seol"
 #: the method of rule ``retarget_semantic``: the actor weights solved from the personalized rig
 #: (rule ``actor_rig_weights``) carried to a character by shape name
 SEMANTIC_METHOD = "semantic_actor_rig"
+#: the rigs rule ``actor_rig_weights`` solves the actor weights from: the personalized rig, and the template rig
+#: it started from (the baseline without personalization); metric keys ``retarget.<source>_weights``
+ACTOR_RIG_SOURCES = ["actor_rig", "template_rig"]
 #: every method run per (performance, character), in report order
 PIPELINE_METHODS = RIBERA_METHODS + [SEOL_METHOD, SEMANTIC_METHOD]
 #: the Ribera variants one of which is ``params.retarget.ribera.primary``

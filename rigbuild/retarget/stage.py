@@ -196,7 +196,7 @@ def run_seol(performance: Path, rig_path: Path, neutral: Sequence[Path] | None, 
 
 # ------------------------------------------------------------------------------- the actor's own rig
 def run_actor_rig(performance: Path, rig_path: Path, actor_rig: Mapping[str, Any] | None, performance_name: str, *,
-                  marker_map: Path, weights: Path, weights_json: Path, solve: Path, metrics: Path) -> dict[str, Any]:
+                  source: str = "actor_rig", marker_map: Path, weights: Path, weights_json: Path, solve: Path, metrics: Path) -> dict[str, Any]:
     """Rule ``actor_rig_weights``: a take's markers placed on the personalized rig and the actor's weights
     solved from that rig (:mod:`rigbuild.retarget.actor_rig`).
 
@@ -212,9 +212,9 @@ def run_actor_rig(performance: Path, rig_path: Path, actor_rig: Mapping[str, Any
 
     p = actor_rig_from_config(actor_rig)
     take = read_markers(performance)
-    rig = read_rig_npz(rig_path)
-    if rig.units != "mm":
-        rig = rig.to_units("mm")
+    from rigbuild.io.rigs import load_rig
+
+    rig = load_rig(rig_path, units="mm")
     start = marker_map_for_take(rig, take.names, path=rig_path)
     P = take.markers if p.marker_lowpass_hz is None else lowpass_markers(take.markers, take.fps, p.marker_lowpass_hz)
     t0 = time.perf_counter()
@@ -237,7 +237,7 @@ def run_actor_rig(performance: Path, rig_path: Path, actor_rig: Mapping[str, Any
                     "(params.retarget.actor_rig.sweeps)", performance, sol.sweeps, p.tol)
     write_json(marker_map, {"rig": str(rig_path), "performance": str(performance), "frame": "the rig's (head) frame",
                             "surface_rms_mm": mmap.surface_rms_mm, "markers": mmap.to_json()})
-    meta = {"method": "actor_rig", "rig": str(rig_path), "params": as_dict(p)}
+    meta = {"method": source, "rig": str(rig_path), "params": as_dict(p)}
     write_weight_curves_csv(weights, sol.weights, rig.shape_names, take.fps)
     write_weight_curves_json(weights_json, sol.weights, rig.shape_names, take.fps, meta=meta)
     save_npz(solve, weights=sol.weights, rotations=sol.rotations, translations=sol.translations,
@@ -250,7 +250,7 @@ def run_actor_rig(performance: Path, rig_path: Path, actor_rig: Mapping[str, Any
               "map_surface_rms_mm": mmap.surface_rms_mm, "markers_off_skin": len(far),
               "weight_min": float(sol.weights.min()), "weight_max": float(sol.weights.max()),
               **plausibility_values(sol.weights, rig.shape_names)}
-    write_metrics_fragment(metrics, "retarget", {"actor_rig_weights": values})
+    write_metrics_fragment(metrics, "retarget", {f"{source}_weights": values})
     log.info("%s: %d markers placed on the personalized rig in %.2f s; %d frames solved in %.2f s (%.0f frames/s), "
              "residual %.2f mm", performance_name, len(mmap.names), t1 - t0, F, t2 - t1, values["frames_per_s"],
              values["marker_residual_mm"])
