@@ -17,6 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+import numpy as np
+
 from rigbuild.io.metrics import flatten_metrics
 from rigbuild.progress import progress
 from rigbuild.report.grids import fmt, grid_html, scalars_html, split_grid
@@ -195,6 +197,25 @@ def timings_html(results_dir: Path) -> str:
             f"<th>rule (job)</th><th>seconds</th><th>max RSS (MB)</th></tr>{body}</table></details>")
 
 
+def retarget_choice_html(flat: Mapping[str, Any]) -> str:
+    """The retargeting section's table of methods and the one to use (:mod:`rigbuild.report.recommend`)."""
+    from rigbuild.report.recommend import method_rows, recommend
+
+    rows = method_rows(flat)
+    if not rows:
+        return ""
+    best, basis = recommend(rows)
+    cols = ("mean_correlation", "weight_mae", "antagonist_fraction", "mean_active")
+    body = "".join(
+        f'<tr{" class=best" if r["method"] == best else ""}><th>{html.escape(r["method"])}'
+        f'{" ✓" if r["method"] == best else ""}</th><td class="num">{r["characters"]}</td>'
+        + "".join(f'<td class="num">{fmt(r[c]) if np.isfinite(r[c]) else "—"}</td>' for c in cols) + "</tr>"
+        for r in rows)
+    return (f'<p class="choice">Use <b>{html.escape(str(best))}</b> on this session ({html.escape(basis)}).</p>'
+            '<table class="choice"><tr><th>method</th><th>characters</th><th>mean correlation</th><th>weight MAE</th>'
+            f"<th>antagonists active together</th><th>shapes active per frame</th></tr>{body}</table>")
+
+
 def build_report(results_dir: str | os.PathLike, session: str, metrics: Mapping[str, Any],
                  thresholds: Mapping | None = None, *, three_js: str | None = None, image_width: int = 560,
                  jpeg_quality: int = 80, limits_note: str = "limits: the defaults",
@@ -218,7 +239,8 @@ def build_report(results_dir: str | os.PathLike, session: str, metrics: Mapping[
     for s in progress(rows, "report sections", unit="section"):
         st, pics = s.stage, PICTURES[s.stage.id]
         caption = html.escape(pics.caption.format(primary=primary))
-        parts.append(f'<section id="{st.id}"><h2>{st.title} {_badge(s.status)}</h2><p>{caption}</p>'
+        choice = retarget_choice_html(flat) if st.id == "retargeting" else ""
+        parts.append(f'<section id="{st.id}"><h2>{st.title} {_badge(s.status)}</h2><p>{caption}</p>{choice}'
                      f"{pictures_html(results_dir, pics, image_width, jpeg_quality, primary)}"
                      f"{metrics_html(flat, s, thresholds, has_truth)}</section>")
     parts.append(f'<section id="timings"><h2>Timings</h2>{timings_html(results_dir)}</section>')

@@ -42,7 +42,8 @@ STAGES = (
     # numbers of rigbuild.retarget.plausible (antagonist pairs active together)
     Stage("retargeting", "Retargeting", "retarget",
           ("retarget.ribera.*.marker_residual_mm", "retarget.seol.*.marker_residual_mm",
-           "retarget.ribera.*.antagonist_fraction", "retarget.seol.*.antagonist_fraction")),
+           "retarget.ribera.*.antagonist_fraction", "retarget.seol.*.antagonist_fraction",
+           "retarget.actor_rig_weights.marker_residual_mm")),
 )
 
 

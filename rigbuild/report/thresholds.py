@@ -55,6 +55,11 @@ DEFAULT_THRESHOLDS: dict[str, Rule] = {
     "retarget.ribera.*.weight_mae": ("max", 0.05, 0.1),
     "retarget.ribera.*.mean_correlation": ("min", 0.9, 0.8),
     "retarget.seol.*.mean_correlation": ("min", 0.9, 0.8),
+    # the personalized rig feeding retargeting (issue 26): actor weights, the marker map, through the rig
+    "retarget.actor_rig_weights.mean_correlation": ("min", 0.95, 0.9),
+    "retarget.actor_rig_weights.weight_mae": ("max", 0.05, 0.1),
+    "retarget.actor_rig_weights.marker_map_error_mm": ("max", 0.5, 1.0),
+    "retarget.semantic_actor_rig.*.mean_correlation": ("min", 0.93, 0.9),
 }
 
 

@@ -41,22 +41,29 @@ log = logging.getLogger(__name__)
 class MarkerMap:
     """Markers on a rig's skin: names (M,), face_ids (M,) triangles of the rig, barycentric (M, 3),
     normal_offset (M,) mm along the triangle's normal; surface_rms_mm: RMS distance of the placing frames'
-    markers to their points on the posed rig (mm)."""
+    markers to their points on the posed rig (mm); placed (M,) bool: the marker was seen in a placing frame
+    (an unplaced one keeps its starting point, e.g. its template vertex; None: all placed)."""
 
     names: list[str]
     face_ids: np.ndarray
     barycentric: np.ndarray
     normal_offset: np.ndarray
     surface_rms_mm: float = float("nan")
+    placed: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.placed is None:
+            self.placed = np.ones(len(self.names), dtype=bool)
 
     def points(self, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         """The markers (..., M, 3) on a mesh (..., V, 3) of the rig's topology (offsets included)."""
         return points_on_surface(vertices, faces, self.face_ids, self.barycentric, self.normal_offset)
 
     def to_json(self) -> dict:
-        """``marker_map.json``'s ``markers``: name -> {face, barycentric, normal_offset_mm}."""
-        return {n: {"face": int(f), "barycentric": [float(b) for b in bc], "normal_offset_mm": float(o)}
-                for n, f, bc, o in zip(self.names, self.face_ids, self.barycentric, self.normal_offset)}
+        """``marker_map.json``'s ``markers``: name -> {face, barycentric, normal_offset_mm, placed}."""
+        return {n: {"face": int(f), "barycentric": [float(b) for b in bc], "normal_offset_mm": float(o),
+                    "placed": bool(pl)}
+                for n, f, bc, o, pl in zip(self.names, self.face_ids, self.barycentric, self.normal_offset, self.placed)}
 
     @classmethod
     def from_json(cls, markers: dict, path=None) -> "MarkerMap":
@@ -65,10 +72,11 @@ class MarkerMap:
             faces = np.array([int(markers[n]["face"]) for n in names], dtype=np.int64)
             bary = np.array([[float(b) for b in markers[n]["barycentric"]] for n in names]).reshape(-1, 3)
             off = np.array([float(markers[n].get("normal_offset_mm", 0.0)) for n in names])
+            placed = np.array([bool(markers[n].get("placed", True)) for n in names], dtype=bool)
         except (KeyError, TypeError, ValueError) as e:
             raise InputError(f"malformed marker map ({e})", path=path,
                              fix='expected {"markers": {"<name>": {"face": f, "barycentric": [a, b, c]}}}') from None
-        return cls(names, faces, bary, off)
+        return cls(names, faces, bary, off, placed=placed)
 
 
 def sample_rig_at_markers(neutral: np.ndarray, deltas: np.ndarray, faces: np.ndarray,
@@ -392,7 +400,7 @@ def fit_marker_map(neutral: np.ndarray, deltas: np.ndarray, faces: np.ndarray, m
         offset = current.normal_offset.copy()
         face_ids[seen], bary[seen], offset[seen] = fid, bc, off[seen] / cnt[seen]
         rms = float(np.sqrt(np.mean(np.concatenate(sq)))) if sq else float("nan")
-        current = MarkerMap(list(current.names), face_ids, bary, offset, rms)
+        current = MarkerMap(list(current.names), face_ids, bary, offset, rms, placed=seen)
     return current
 
 

@@ -319,7 +319,7 @@ class ActorRigParams:
     lambda_t: float = 0.0
     lambda_l1: float = 0.5
     lambda_s: float = 0.0
-    marker_lowpass_hz: Optional[float] = 5.0
+    marker_lowpass_hz: Optional[float] = 8.0
     bounds: list = field(default_factory=lambda: [0.0, 1.0])
     sweeps: int = 60
     tol: float = 1e-4

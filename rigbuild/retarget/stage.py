@@ -232,6 +232,10 @@ def run_actor_rig(performance: Path, rig_path: Path, actor_rig: Mapping[str, Any
         log.warning("%s: markers %s sit more than %.1f mm off the personalized rig's skin (%s): mislabelled or "
                     "loose markers, or a rig that does not fit this actor", performance, far[:6],
                     p.max_surface_distance_mm, rig_path)
+    unplaced = [n for n, ok in zip(mmap.names, mmap.placed) if not ok]
+    if unplaced:
+        log.warning("%s: markers %s are gaps in every placing frame: they keep their marker-set vertex on the rig",
+                    performance, unplaced[:6])
     if not sol.converged:
         log.warning("%s: the actor-rig solve stopped after %d sweeps before every weight settled to %.0e "
                     "(params.retarget.actor_rig.sweeps)", performance, sol.sweeps, p.tol)
@@ -248,6 +252,7 @@ def run_actor_rig(performance: Path, rig_path: Path, actor_rig: Mapping[str, Any
               "frames_per_s": F / max(t2 - t1, 1e-9), "sweeps": sol.sweeps, "converged": sol.converged,
               "marker_residual_mm": float(np.nanmean(sol.residual_mm)),
               "map_surface_rms_mm": mmap.surface_rms_mm, "markers_off_skin": len(far),
+              "markers_unplaced": len(unplaced),
               "weight_min": float(sol.weights.min()), "weight_max": float(sol.weights.max()),
               **plausibility_values(sol.weights, rig.shape_names)}
     write_metrics_fragment(metrics, "retarget", {f"{source}_weights": values})

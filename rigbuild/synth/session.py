@@ -183,6 +183,29 @@ def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | No
     return timings
 
 
+def generate_mocap_only(out_dir: str | os.PathLike, name: str, synthetic: dict | None) -> Path:
+    """The session's rigs, cameras and performances without any image: ``ground_truth/`` (actor_rig.npz,
+    template_rig.npz, cameras.json, dots.npz, performances/<name>.npz) and ``performances/<name>.c3d``, the
+    same bytes :func:`generate_session` writes for them (the same seeds), for benchmarks of the marker-space
+    stages. ``out_dir`` is replaced. Returns it."""
+    from rigbuild.session import session_from_dict
+
+    p = synth_params(synthetic)
+    plan = plan_session(name, synthetic)
+    out_dir = Path(out_dir)
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    (out_dir / "ground_truth" / "performances").mkdir(parents=True)
+    (out_dir / "performances").mkdir(parents=True)
+    spec = session_from_dict(plan, out_dir)
+    gt = out_dir / "ground_truth"
+    actor, _ = _write_rigs(gt, spec, p)
+    face_centre = actor.neutral[actor.face_vertices].mean(0)
+    cameras = _write_cameras(gt, spec, p, name, face_centre)
+    _write_performances(out_dir, gt, spec, p, actor, face_centre, cameras)
+    return out_dir
+
+
 def _write_rigs(gt: Path, spec, p: dict):
     """Load the template, make the actor and write both rigs (and actor_info.json) under ``gt``.
 
