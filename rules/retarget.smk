@@ -3,8 +3,10 @@
 # method registry). Needs from common.smk: session_spec, performances, performance_file, CHARACTERS, results();
 # characters.smk builds results/{session}/characters/{character}.npz; tracking writes
 # results/{session}/track/{sequence}/markers.npz. Params: config["params"]["retarget"]["ribera"]
-# (rigbuild/retarget/params.py RiberaParams).
-from rigbuild.retarget.methods import PIPELINE_METHODS, RIBERA_METHODS
+# (rigbuild/retarget/params.py RiberaParams). Method ribera_fit_actor_rig (RIBERA_ACTOR_RIG_METHOD) also reads the
+# personalized rig (personalize.smk) and the take's marker map on it (rule actor_rig_weights,
+# retarget_actor_rig.smk); the other methods' jobs do not depend on them.
+from rigbuild.retarget.methods import PIPELINE_METHODS, RIBERA_ACTOR_RIG_METHOD, RIBERA_METHODS
 from rigbuild.retarget.methods import wildcard as _method_wildcard
 
 
@@ -16,6 +18,19 @@ def _retarget_rom_markers(wc):
 def _retarget_neutral_frames(wc):
     """The neutral row of each tracked markers.npz (its rows start at the sequence's first frame)."""
     return [int(seq.neutral_frame) - int(seq.start) for seq in session_spec(wc.session).rom]
+
+
+def _retarget_actor_rig(wc):
+    """Method ribera_fit_actor_rig: the personalized rig whose shapes at the markers are E_Align's guesses g_k
+    ([] for the other methods)."""
+    return [f"results/{wc.session}/personalize/rig.npz"] if wc.method == RIBERA_ACTOR_RIG_METHOD else []
+
+
+def _retarget_marker_map(wc):
+    """Method ribera_fit_actor_rig: the take's markers placed on the personalized rig ([] for the others)."""
+    if wc.method != RIBERA_ACTOR_RIG_METHOD:
+        return []
+    return [f"results/{wc.session}/actor_rig/{wc.performance}/marker_map.json"]
 
 
 def retarget_metric_files(session):
@@ -33,6 +48,8 @@ rule retarget_ribera:
         performance=lambda wc: performance_file(wc.session, wc.performance),
         training=_retarget_rom_markers,
         rig="results/{session}/characters/{character}.npz",
+        actor_rig=_retarget_actor_rig,
+        marker_map=_retarget_marker_map,
     output:
         weights="results/{session}/retarget/{method}/{performance}/{character}/weights.csv",
         weights_json="results/{session}/retarget/{method}/{performance}/{character}/weights.json",

@@ -10,9 +10,17 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
+#: the ROM-fit Ribera variant whose E_Align initial guesses g_k (and E_Mesh reference) of the actor blendshapes
+#: are the personalized rig sampled at the markers (issue 26), not the RBF / deformation-transfer guesses
+#: from the character; its rule ``retarget_ribera`` jobs also read the personalized rig and the take's
+#: marker map (rule ``actor_rig_weights``)
+RIBERA_ACTOR_RIG_METHOD = "ribera_fit_actor_rig"
 #: methods of rule ``retarget_ribera`` (Ribera et al. 2017 as written with the paper's constants, its
-#: activation-aware and ROM-fit E_Match options, the RBF-transfer and deformation-transfer baselines)
-RIBERA_METHODS = ["ribera", "ribera_activation", "ribera_fit", "rbf", "deformation"]
+#: activation-aware and ROM-fit E_Match options, the ROM-fit option from the personalized rig's guesses, the
+#: RBF-transfer and deformation-transfer baselines)
+RIBERA_METHODS = ["ribera", "ribera_activation", "ribera_fit", RIBERA_ACTOR_RIG_METHOD, "rbf", "deformation"]
+#: the methods that run the ROM-fit E_Match (``TransferParams.match = "fit"``, guesses from ``fit_guess``)
+RIBERA_FIT_METHODS = ("ribera_fit", RIBERA_ACTOR_RIG_METHOD)
 #: the method of rule ``retarget_seol`` (Seol et al. 2012 spacetime expression cloning)
 SEOL_METHOD = "seol"
 #: the method of rule ``retarget_semantic``: the actor weights solved from the personalized rig
@@ -24,7 +32,7 @@ ACTOR_RIG_SOURCES = ["actor_rig", "template_rig"]
 #: every method run per (performance, character), in report order
 PIPELINE_METHODS = RIBERA_METHODS + [SEOL_METHOD, SEMANTIC_METHOD]
 #: the Ribera variants one of which is ``params.retarget.ribera.primary``
-RIBERA_VARIANTS = ("ribera", "ribera_activation", "ribera_fit")
+RIBERA_VARIANTS = ("ribera", "ribera_activation", "ribera_fit", RIBERA_ACTOR_RIG_METHOD)
 #: the Ribera variant whose numbers are also reported as ``retarget.ribera.*`` (the default of ``primary``)
 PRIMARY_RIBERA_METHOD = "ribera_fit"
 #: the metric prefix under which the primary variant is reported a second time
@@ -33,7 +41,8 @@ PRIMARY_PREFIX = "ribera"
 #: method -> metric prefix of its own numbers (``retarget.<prefix>.<character>.*``); ``ribera`` runs the paper
 #: with its own constants (:meth:`rigbuild.retarget.params.RiberaParams.for_method`): ``ribera_paper``
 METHOD_KEYS = {"ribera": "ribera_paper", "ribera_activation": "ribera_activation", "ribera_fit": "ribera_fit",
-               "rbf": "rbf_baseline", "deformation": "deformation_baseline", "seol": "seol",
+               RIBERA_ACTOR_RIG_METHOD: "ribera_fit_actor_rig", "rbf": "rbf_baseline",
+               "deformation": "deformation_baseline", "seol": "seol",
                "semantic_actor_rig": "semantic_actor_rig"}
 #: Seol job: result (spacetime solution or sec. 7 baseline) -> metric prefix
 SEOL_RESULT_KEYS = {

@@ -22,7 +22,7 @@ from typing import Any, Mapping, Optional
 
 from rigbuild.errors import InputError
 from rigbuild.params import from_mapping
-from rigbuild.retarget.methods import PRIMARY_RIBERA_METHOD, check_primary
+from rigbuild.retarget.methods import PRIMARY_RIBERA_METHOD, RIBERA_FIT_METHODS, check_primary
 
 WHERE = "params.retarget"
 
@@ -152,7 +152,8 @@ class RiberaParams:
 
     alpha, beta, r, ceg_reference, fit_alpha, fit_lambda_cm : :class:`TransferParams` (lambda for cm).
     guess : g_k of E_Mesh for ``ribera`` / ``ribera_activation`` (``rbf``, sec. 4.4, or ``deformation``);
-    fit_guess : g_k for ``ribera_fit``.
+    fit_guess : g_k for ``ribera_fit`` (and, for the character shapes the personalized rig lacks, for
+        ``ribera_fit_actor_rig``, whose other g_k are the personalized rig sampled at the markers).
     rigid, mu, lambda_cm, bounds : :class:`RetargetParams` (``bounds`` [lo, hi] or null).
     allow_empty_frames : frames with fewer than 3 visible markers get interpolated weights (else an error).
     preview_frames : frames drawn in preview.png (the most active ones).
@@ -204,12 +205,12 @@ class RiberaParams:
                        marker_lowpass_hz=None, sparsity="l1", antagonists=False, still_gate=False)
 
     def transfer_params(self, method: str) -> TransferParams:
-        """The transfer parameters of ``method`` (``ribera_fit`` takes ``fit_guess``; ``ribera`` the paper's,
-        :meth:`for_method`)."""
+        """The transfer parameters of ``method`` (``ribera_fit`` and ``ribera_fit_actor_rig`` take ``fit_guess``,
+        the latter for the character shapes the personalized rig lacks; ``ribera`` the paper's, :meth:`for_method`)."""
         q = self.for_method(method)
         return TransferParams(alpha=float(q.alpha), beta=float(q.beta), r=float(q.r),
                               ceg_reference=str(q.ceg_reference),
-                              guess=str(q.fit_guess if method == "ribera_fit" else q.guess),
+                              guess=str(q.fit_guess if method in RIBERA_FIT_METHODS else q.guess),
                               fit_alpha=float(q.fit_alpha), fit_lambda_cm=float(q.fit_lambda_cm))
 
     def retarget_params(self, method: str | None = None) -> RetargetParams:

@@ -24,7 +24,7 @@ from rigbuild.retarget.common import (
     reorder_markers,
     stabilize,
 )
-from rigbuild.retarget.ribera import RetargetParams, RiberaModel, TransferParams, build_model
+from rigbuild.retarget.ribera import RetargetParams, RiberaModel, RigAtMarkers, TransferParams, build_model
 from rigbuild.rig import Rig
 
 
@@ -123,6 +123,7 @@ def retarget_performance(
     workers: int = 1,
     marker_lowpass_hz: float | None = None,
     fps: float | None = None,
+    actor_rig: RigAtMarkers | None = None,
 ) -> RetargetResult:
     """Retarget one performance onto one character.
 
@@ -133,10 +134,11 @@ def retarget_performance(
     workers : processes for the transfer's deformation-transfer guesses (the job's threads).
     marker_lowpass_hz, fps : optional zero-phase low-pass of the performance markers (-3 dB frequency;
         :func:`rigbuild.retarget.common.lowpass_markers`) before retargeting; not in the paper (offline only).
+    actor_rig : method ``ribera_fit_actor_rig``: the personalized rig at the markers (its guesses g_k).
     """
     t0 = time.perf_counter()
     model = prepare_model(training, character, map_names, map_vertices, method, transfer_params, retarget_params,
-                          contact_pairs, map_path, workers)
+                          contact_pairs, map_path, workers, actor_rig)
     t1 = time.perf_counter()
     res = apply_model(model, training, performance, performance_names, allow_empty_frames, performance_path,
                       marker_lowpass_hz, fps)
@@ -155,9 +157,12 @@ def prepare_model(
     contact_pairs: np.ndarray | None = None,
     map_path: str | os.PathLike | None = None,
     workers: int = 1,
+    actor_rig: RigAtMarkers | None = None,
 ) -> RiberaModel:
     """The retargeting model of :func:`retarget_performance` (the transfer), to apply to several takes with
-    :func:`apply_model`. Arguments as there."""
+    :func:`apply_model`. Arguments as there; ``actor_rig`` becomes the guesses g_k of method
+    ``ribera_fit_actor_rig`` in the frame of the training neutral (:func:`~rigbuild.retarget.ribera.rig_marker_guesses`,
+    markers matched by the training sequence's names, shapes by the character's)."""
     vids = map_markers_to_vertices(training.names, map_names, map_vertices, character.name, map_path)
     pairs = None
     if contact_pairs is not None and len(contact_pairs):
@@ -165,8 +170,14 @@ def prepare_model(
         pairs = np.array([[pos[map_names[a]], pos[map_names[b]]] for a, b in contact_pairs
                           if map_names[a] in pos and map_names[b] in pos], dtype=np.int64).reshape(-1, 2)
     check_frames(training.markers, what="training sequence", allow_empty=True)
+    guesses = None
+    if actor_rig is not None:
+        from rigbuild.retarget.ribera import rig_marker_guesses
+
+        guesses = rig_marker_guesses(actor_rig, training.neutral, training.names, character.shape_names)
     return build_model(character, vids, training.neutral, training.markers, method, transfer_params,
-                       retarget_params, training.segment_starts, contact_pairs=pairs, workers=workers)
+                       retarget_params, training.segment_starts, contact_pairs=pairs, workers=workers,
+                       rig_guesses=guesses)
 
 
 def apply_model(

@@ -24,7 +24,7 @@ from rigbuild.io.metrics import write_metrics_fragment
 from rigbuild.io.rigs import read_rig_npz
 from rigbuild.params import as_dict
 from rigbuild.retarget.common import check_marker_overlap
-from rigbuild.retarget.methods import RIBERA_METHODS, method_metrics, seol_result_metrics
+from rigbuild.retarget.methods import RIBERA_ACTOR_RIG_METHOD, RIBERA_METHODS, method_metrics, seol_result_metrics
 from rigbuild.retarget.params import ribera_from_config, seol_from_config
 
 Path = str | os.PathLike
@@ -53,13 +53,55 @@ def ribera_job_metrics(res, n_markers: int) -> dict[str, Any]:
               **plausibility_values(res.weights, res.shape_names)}
     if res.model.transfer is not None:
         values["n_keys"] = int(res.model.transfer.keys.size)
+        for key in ("rig_guess_shapes", "rig_guess_markers", "rig_alignment_rms_mm"):  # ribera_fit_actor_rig
+            if key in res.model.transfer.info:
+                values[key] = res.model.transfer.info[key]
     return values
+
+
+def one_input(files) -> str | None:
+    """A named job input that is one path or a list of at most one ([] where the rule gives none): the path,
+    or None."""
+    if files is None or isinstance(files, (str, os.PathLike)):
+        return None if files is None else str(files)
+    files = [str(f) for f in files]
+    if len(files) > 1:
+        raise InputError(f"expected one file, got {len(files)}: {files[:3]}", path="rules")
+    return files[0] if files else None
+
+
+def load_rig_at_markers(rig_path: Path, marker_map_path: Path):
+    """The personalized rig (``rig.npz``, mm) sampled at a take's markers placed on it (``marker_map.json`` of
+    rule ``actor_rig_weights``): :class:`~rigbuild.retarget.ribera.RigAtMarkers` in the rig's frame."""
+    import json
+
+    from rigbuild.io.rigs import load_rig
+    from rigbuild.retarget.actor_rig import MarkerMap, sample_rig_at_markers
+    from rigbuild.retarget.ribera import RigAtMarkers
+
+    rig = load_rig(rig_path, units="mm")
+    try:
+        doc = json.loads(open(marker_map_path).read())
+    except (OSError, ValueError) as e:
+        raise InputError(f"cannot read the marker map ({e})", path=marker_map_path,
+                         fix="re-run rule actor_rig_weights for this performance") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("markers"), dict):
+        raise InputError("the marker map has no 'markers' mapping", path=marker_map_path,
+                         fix="re-run rule actor_rig_weights for this performance")
+    mmap = MarkerMap.from_json(doc["markers"], path=marker_map_path)
+    n_faces = int(np.asarray(rig.faces).shape[0])
+    if mmap.face_ids.size and (mmap.face_ids.min() < 0 or mmap.face_ids.max() >= n_faces):
+        raise InputError(f"the marker map names triangles outside the personalized rig's {n_faces}",
+                         path=marker_map_path, fix=f"place the markers on {rig_path} (rule actor_rig_weights)")
+    b0, D = sample_rig_at_markers(rig.neutral, rig.deltas, rig.faces, mmap)
+    return RigAtMarkers(b0, D, list(mmap.names), [str(n) for n in rig.shape_names])
 
 
 def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, method: str, character: str,
                performance_name: str, ribera: Mapping[str, Any] | None, neutral_frames: Sequence[int] | None, *,
                weights: Path, weights_json: Path, gltf: Path, preview: Path, metrics: Path,
-               workers: int = 1) -> dict[str, Any]:
+               workers: int = 1, actor_rig: Path | Sequence[Path] | None = None,
+               marker_map: Path | Sequence[Path] | None = None) -> dict[str, Any]:
     """Rule ``retarget_ribera``: one performance onto one character with one method of
     :data:`~rigbuild.retarget.methods.RIBERA_METHODS`.
 
@@ -67,7 +109,10 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
     ``marker_names``); rig_path : character .npz with its marker map; ribera : ``params.retarget.ribera``;
     neutral_frames : the neutral row of each training file; method ``ribera`` runs with the paper's constants
     whatever ``ribera`` says (:meth:`~rigbuild.retarget.params.RiberaParams.for_method`; the weight files'
-    ``params`` are the ones it ran with). Writes the outputs named by the keywords; returns the metrics."""
+    ``params`` are the ones it ran with); actor_rig, marker_map : method ``ribera_fit_actor_rig`` only, the
+    personalized ``rig.npz`` and the take's ``marker_map.json`` on it (its guesses g_k,
+    :func:`load_rig_at_markers`), each a path or a list of at most one (:func:`one_input`). Writes the outputs
+    named by the keywords; returns the metrics."""
     from rigbuild.retarget.preview import write_preview
     from rigbuild.retarget.run import make_training_set, retarget_performance
 
@@ -75,6 +120,13 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
     if method not in RIBERA_METHODS:
         raise InputError(f"unknown method '{method}'", path="config", fix=f"use one of {RIBERA_METHODS}")
     p = p.for_method(method)  # ``ribera``: the paper's constants whatever the config says
+    rig_at_markers = None
+    actor_rig, marker_map = one_input(actor_rig), one_input(marker_map)
+    if method == RIBERA_ACTOR_RIG_METHOD:
+        if not actor_rig or not marker_map:
+            raise InputError(f"method '{method}' needs the personalized rig and the take's marker map", path="rules",
+                             fix="give rule retarget_ribera the inputs actor_rig and marker_map for this method")
+        rig_at_markers = load_rig_at_markers(actor_rig, marker_map)
     take = read_markers(performance)
     files = list(training)
     takes = [read_markers(f) for f in files]
@@ -91,9 +143,11 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
                                allow_empty_frames=bool(p.allow_empty_frames), performance_path=performance,
                                map_path=rig_path, workers=int(workers),
                                marker_lowpass_hz=None if p.marker_lowpass_hz is None else float(p.marker_lowpass_hz),
-                               fps=take.fps)
+                               fps=take.fps, actor_rig=rig_at_markers)
     fps = take.fps
     meta = {"method": method, "character": rig.name, "params": as_dict(p)}
+    if rig_at_markers is not None:
+        meta.update(actor_rig=str(actor_rig), marker_map=str(marker_map))
     write_weight_curves_csv(weights, res.weights, res.shape_names, fps)
     write_weight_curves_json(weights_json, res.weights, res.shape_names, fps, meta=meta)
     write_gltf_animation(gltf, rig, res.weights, fps)

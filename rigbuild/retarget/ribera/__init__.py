@@ -41,6 +41,10 @@ Beyond the paper (options; the faithful path stays):
 - ``TransferParams.match = "fit"`` (method ``ribera_fit``, :func:`fit_match_transfer`): E_Match matches every
   training frame with all shapes at their solved (sparse) activations instead of eq. 10's similarity-weighted
   mean of masked keys, which shrinks the shapes.
+- Method ``ribera_fit_actor_rig`` (issue 26): ``ribera_fit`` with the guesses g_k (E_Mesh's reference) of the
+  actor blendshapes taken from the actor's personalized rig sampled at the markers and rotated into ``a0``'s
+  frame (:func:`rig_marker_guesses`), so the ROM alignment corrects the personalization instead of starting
+  from the character; a character shape the rig lacks keeps the ``fit_guess`` guess.
 - ``TransferParams.guess = "deformation"`` (and method ``deformation``, the guesses used directly): g_k by
   deformation transfer onto the character's neutral warped into the actor's proportions
   (:func:`deformation_guesses`), instead of the pointwise thin-plate RBF.
@@ -86,7 +90,15 @@ from rigbuild.retarget.ribera.align_terms import (  # noqa: F401
     soft_masks,
 )
 from rigbuild.retarget.ribera.bounded import _masked_system, _solve_free  # noqa: F401
-from rigbuild.retarget.ribera.guesses import deformation_guesses, fit_thin_plate_rbf, rbf_transfer  # noqa: F401
+from rigbuild.retarget.ribera.guesses import (  # noqa: F401
+    RigAtMarkers,
+    RigMarkerGuesses,
+    combine_guesses,
+    deformation_guesses,
+    fit_thin_plate_rbf,
+    rbf_transfer,
+    rig_marker_guesses,
+)
 from rigbuild.retarget.ribera.marker_mesh import (  # noqa: F401
     MarkerTriangulation,
     marker_laplacian,

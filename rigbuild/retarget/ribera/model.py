@@ -9,9 +9,9 @@ import numpy as np
 
 from rigbuild.errors import InputError
 from rigbuild.retarget.common import stabilize
-from rigbuild.retarget.methods import RIBERA_METHODS
+from rigbuild.retarget.methods import RIBERA_ACTOR_RIG_METHOD, RIBERA_FIT_METHODS, RIBERA_METHODS
 from rigbuild.retarget.params import RetargetParams, TransferParams
-from rigbuild.retarget.ribera.guesses import deformation_guesses, rbf_transfer
+from rigbuild.retarget.ribera.guesses import RigMarkerGuesses, combine_guesses, deformation_guesses, rbf_transfer
 from rigbuild.retarget.plausible import antagonist_pairs
 from rigbuild.retarget.ribera.plausible import marker_ranges
 from rigbuild.retarget.ribera.prior import head_scale, prior_matrix
@@ -77,6 +77,7 @@ def build_model(
     uv: np.ndarray | None = None,
     contact_pairs: np.ndarray | None = None,
     workers: int = 1,
+    rig_guesses: RigMarkerGuesses | None = None,
 ) -> RiberaModel:
     """Prepare retargeting of an actor's markers onto ``character``.
 
@@ -89,7 +90,8 @@ def build_model(
         the ``"rbf"`` and ``"deformation"`` baselines.
     method : ``"ribera"`` (section 4 transfer as written), ``"ribera_activation"`` (the activation-aware
         E_Match option, see :func:`transfer_blendshapes`), ``"ribera_fit"`` (the ROM-fit E_Match option,
-        :func:`fit_match_transfer`),
+        :func:`fit_match_transfer`), ``"ribera_fit_actor_rig"`` (``ribera_fit`` with the guesses g_k, E_Mesh's
+        reference, from the actor's personalized rig: ``rig_guesses``),
         ``"rbf"`` (baseline: the thin-plate RBF guesses ``g_k`` used directly), ``"deformation"`` (the
         deformation-transfer guesses of :func:`deformation_guesses` used directly).
     segment_starts : first frame of each concatenated training sequence.
@@ -97,6 +99,11 @@ def build_model(
         ``"deformation"``).
 
     workers : processes for the deformation-transfer guesses (the job's threads; same result).
+    rig_guesses : method ``"ribera_fit_actor_rig"`` only: the personalized rig at the markers in ``a0``'s frame
+        (:func:`rigbuild.retarget.ribera.guesses.rig_marker_guesses`, the character's shape order); g_k of a
+        shape and marker it covers is the rig's, the others keep the ``transfer_params.guess`` guess. Everything
+        ``ribera_fit`` derives from g_k (E_Mesh, the transfer's starting point and Tikhonov reference, the
+        rigidity weights of the stabilization) then derives from these.
 
     All methods retarget with the same section-5 energy (E_Fit + mu E_Prior + lambda E_Sparse).
     """
@@ -115,7 +122,18 @@ def build_model(
     if tp.guess not in ("rbf", "deformation"):
         raise InputError(f"unknown initial guess '{tp.guess}'", fix="use rbf or deformation")
     use_dt = method == "deformation" or (method != "rbf" and tp.guess == "deformation")
-    dg = deformation_guesses(ch, vertex_ids, a0, workers) if use_dt else rbf_transfer(s0, ds, a0)
+    if method == RIBERA_ACTOR_RIG_METHOD:
+        if rig_guesses is None:
+            raise InputError(f"method '{method}' needs the personalized rig at the markers (rig_guesses)",
+                             fix="give the job the personalized rig and the take's marker map")
+        if rig_guesses.dg.shape != ds.shape:
+            raise InputError(f"rig guesses {rig_guesses.dg.shape} do not match the character's {ds.shape}")
+        covered = bool(rig_guesses.shapes.all() and rig_guesses.markers.all())
+        fallback = None if covered else (deformation_guesses(ch, vertex_ids, a0, workers) if use_dt
+                                         else rbf_transfer(s0, ds, a0))
+        dg = combine_guesses(rig_guesses, fallback)
+    else:
+        dg = deformation_guesses(ch, vertex_ids, a0, workers) if use_dt else rbf_transfer(s0, ds, a0)
     rigidity = rigidity_weights(dg)
     marker_range = da = None
     if training is not None:
@@ -128,9 +146,13 @@ def build_model(
             raise InputError(f"method '{method}' needs the actor's training (ROM) markers")
         if method == "ribera_activation":
             tp = TransferParams(**{**tp.__dict__, "match": "activation"})
-        if method == "ribera_fit":
+        if method in RIBERA_FIT_METHODS:
             tp = TransferParams(**{**tp.__dict__, "match": "fit"})
         transfer = transfer_blendshapes(s0, ds, a0, da, tp, uv=uv, contact_pairs=contact_pairs,
                                         segment_starts=segment_starts, dg=dg, prior=Q)
         dp = transfer.dp
+        if rig_guesses is not None and method == RIBERA_ACTOR_RIG_METHOD:
+            transfer.info["rig_guess_shapes"] = int(rig_guesses.shapes.sum())
+            transfer.info["rig_guess_markers"] = int(rig_guesses.markers.sum())
+            transfer.info["rig_alignment_rms_mm"] = float(rig_guesses.alignment_rms_mm)
     return RiberaModel(a0, dp, Q, rigidity, list(ch.shape_names), rp, transfer, marker_range)
