@@ -13,6 +13,29 @@ from __future__ import annotations
 import numpy as np
 
 
+def _solve_free(H: np.ndarray, rhs: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """(B, K): ``x[free] = H[free, free]^-1 rhs[free]`` per item, 0 elsewhere. The free variables of each item are
+    gathered into the leading rows of a (B, n, n) system (n: the most free variables of any item, identity
+    padding), so a batch of sparse solutions costs n^3, not K^3, per item."""
+    B, K = rhs.shape
+    nf = free.sum(1)
+    n = int(nf.max(initial=0))
+    out = np.zeros((B, K))
+    if n == 0:
+        return out
+    order = np.argsort(~free, axis=1, kind="stable")[:, :n]  # free indices first, in index order
+    valid = np.arange(n)[None, :] < nf[:, None]
+    b_idx = np.arange(B)[:, None]
+    A = H[b_idx[:, :, None], order[:, :, None], order[:, None, :]]
+    both = valid[:, :, None] & valid[:, None, :]
+    A = np.where(both, A, 0.0) + (~valid)[:, :, None] * np.eye(n)
+    r = np.where(valid, rhs[b_idx, order], 0.0)
+    x = np.linalg.solve(A, r[..., None])[..., 0]
+    rows, cols = np.nonzero(valid)
+    out[rows, order[rows, cols]] = x[rows, cols]
+    return out
+
+
 def solve_box_qp_batched(H: np.ndarray, f: np.ndarray, lo: float = 0.0, hi: float = 1.0,
                          x0: np.ndarray | None = None, max_rounds: int = 100) -> tuple[np.ndarray, np.ndarray]:
     """Exact box QPs for a batch.
@@ -37,7 +60,6 @@ def solve_box_qp_batched(H: np.ndarray, f: np.ndarray, lo: float = 0.0, hi: floa
     best = np.full(B, K + 1)
     backup_left = np.full(B, 3)
     todo = np.arange(B)
-    eye = np.eye(K, dtype=bool)
     for _ in range(max_rounds):
         if todo.size == 0:
             break
@@ -45,9 +67,8 @@ def solve_box_qp_batched(H: np.ndarray, f: np.ndarray, lo: float = 0.0, hi: floa
         free = ~(at_lo[todo] | at_hi[todo])
         xfix = np.where(at_hi[todo], hi, lo).astype(np.float64)
         xfix[free] = 0.0
-        A = np.where(free[:, :, None] & free[:, None, :], Hs, 0.0) + (~free)[:, :, None] * eye
-        rhs = np.where(free, -(fs + np.einsum("bkl,bl->bk", Hs, xfix)), xfix)
-        xs = np.linalg.solve(A, rhs[..., None])[..., 0]
+        rhs = -(fs + np.einsum("bkl,bl->bk", Hs, xfix))
+        xs = xfix + _solve_free(Hs, rhs, free)
         g = np.einsum("bkl,bl->bk", Hs, xs) + fs
         t = tol[todo][:, None]
         bad_lo = free & (xs < lo - 1e-12)
