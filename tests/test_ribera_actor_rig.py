@@ -18,6 +18,7 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
+from grid_mesh import grid_mesh
 from rigbuild.errors import InputError
 from rigbuild.paths import PROJECT_ROOT
 from rigbuild.retarget import ribera as rb
@@ -27,15 +28,8 @@ from rigbuild.rig import Rig
 
 
 def _grid(n: int = 7, spacing: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
-    """A flat n x n grid (mm) in z = 0, two triangles per cell: vertices (n*n, 3), faces (2(n-1)^2, 3)."""
-    x, y = np.meshgrid(np.arange(n) * spacing, np.arange(n) * spacing)
-    V = np.column_stack([x.ravel(), y.ravel(), np.zeros(n * n)])
-    faces = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a, b, c, d = i * n + j, i * n + j + 1, (i + 1) * n + j, (i + 1) * n + j + 1
-            faces += [[a, b, d], [a, d, c]]
-    return V, np.array(faces)
+    """A flat n x n grid (mm) in z = 0 (:func:`grid_mesh.grid_mesh`): vertices (n*n, 3), faces (2(n-1)^2, 3)."""
+    return grid_mesh(n, spacing * (n - 1))
 
 
 def _affine_rig(seed: int = 0):
