@@ -12,8 +12,8 @@ and the markers are placed on, and the weights solved from:
 
 The personalized rig itself needs the whole image pipeline on the tier (calibrate, reconstruct, track,
 personalize: hours here); its numbers come from a DAG run (``retarget.actor_rig_weights.*``).
-Columns: marker-map error (position on the rig's neutral after a face-region rigid alignment, and along the
-actor's skin, mm), weight correlation / MAE against the true weights (:mod:`rigbuild.eval.retarget`), and the
+Columns: marker-map error (position on the rig's neutral after a face-region rigid alignment, over every marker
+and over the markers seen in a placing frame, and along the actor's skin, mm), weight correlation / MAE against the true weights (:mod:`rigbuild.eval.retarget`), and the
 solve's speed (frames per second of the batched solve, after the map).
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_actor_rig.py [--tune] [--tiers ict_dev,ict]
@@ -99,6 +99,7 @@ def run(session: Path, which: str, p: ActorRigParams) -> dict:
     return {"frames": F, "markers": len(m.names), "map_s": t1 - t0, "solve_s": t3 - t2, "frames_per_s": F / (t3 - t2),
             "sweeps": sol.sweeps, "converged": sol.converged, "map_error_mm": float(pos.mean()),
             "map_p95_mm": float(np.percentile(pos, 95)), "map_skin_error_mm": float(skin.mean()),
+            "map_placed_error_mm": float(pos[m.placed].mean()), "unplaced": int((~m.placed).sum()),
             "residual_mm": float(np.nanmean(sol.residual_mm)), "correlation": score["mean_correlation"],
             "weight_mae": score["weight_mae"]}
 
@@ -123,7 +124,7 @@ def main() -> None:
         session = tier_session(tier)
         for which in ("actor", "template"):
             rows.append({"tier": tier, "rig": which, **run(session, which, p)})
-    cols = ["tier", "rig", "frames", "map_error_mm", "map_skin_error_mm", "correlation", "weight_mae", "residual_mm",
+    cols = ["tier", "rig", "frames", "map_error_mm", "map_placed_error_mm", "unplaced", "map_skin_error_mm", "correlation", "weight_mae", "residual_mm",
             "frames_per_s", "sweeps", "map_s"]
     print_table(rows, cols)
     if set(tiers) == set(TIERS):

@@ -204,7 +204,8 @@ def run_eval_actor_rig(weights_csv: str | os.PathLike, marker_map_json: str | os
     ``source`` ``template_rig``) vs the true performance weights (:func:`retarget_metrics`), and the marker map
     vs the markers' true skin points (:func:`marker_map_errors`; the map's ``rig`` is read from the map).
     Fragment ``retarget.<source>_weights.{weight_mae, mean_correlation, unobservable_mae, marker_map_error_mm,
-    marker_map_p95_error_mm, marker_map_skin_error_mm}``; every number at ``details_path``."""
+    marker_map_p95_error_mm, marker_map_skin_error_mm, marker_map_placed_error_mm}`` (the last over the markers
+    seen in a placing frame; the headline counts every marker); every number at ``details_path``."""
     import json
 
     from rigbuild.io.atomic import write_json
@@ -228,8 +229,13 @@ def run_eval_actor_rig(weights_csv: str | os.PathLike, marker_map_json: str | os
     m["marker_map_error_mm"] = float(err.mean())
     m["marker_map_p95_error_mm"] = float(np.percentile(err, 95))
     m["marker_map_skin_error_mm"] = float(skin.mean())
+    markers = doc.get("markers", {})
+    placed = np.array([bool(markers[str(n)].get("placed", True)) for n in truth["marker_names"]])
+    m["marker_map_placed_error_mm"] = float(err[placed].mean()) if placed.any() else float("nan")
+    m["markers_unplaced"] = int((~placed).sum())
     m["marker_map_errors_mm"] = {str(n): float(e) for n, e in zip(truth["marker_names"], err)}
     write_json(details_path, {"method": source, **m})
-    keys = FRAGMENT_KEYS + ("marker_map_error_mm", "marker_map_p95_error_mm", "marker_map_skin_error_mm")
+    keys = FRAGMENT_KEYS + ("marker_map_error_mm", "marker_map_p95_error_mm", "marker_map_skin_error_mm",
+                            "marker_map_placed_error_mm")
     write_metrics_fragment(metrics_path, "retarget", {f"{source}_weights": {k: m[k] for k in keys}})
     return m
