@@ -23,6 +23,12 @@ RIBERA_METHODS = ["ribera", "ribera_activation", "ribera_fit", RIBERA_ACTOR_RIG_
 RIBERA_FIT_METHODS = ("ribera_fit", RIBERA_ACTOR_RIG_METHOD)
 #: the method of rule ``retarget_seol`` (Seol et al. 2012 spacetime expression cloning)
 SEOL_METHOD = "seol"
+#: the Seol variant whose source side (the actor's neutral and expression space at the markers, hence the scale
+#: map shape by shape) comes from the personalized rig (issue 26, :mod:`rigbuild.retarget.seol.actor_space`); its
+#: rule ``retarget_seol`` jobs also read the personalized rig and the take's marker map (rule ``actor_rig_weights``)
+SEOL_ACTOR_RIG_METHOD = "seol_actor_rig"
+#: methods of rule ``retarget_seol``
+SEOL_METHODS = [SEOL_METHOD, SEOL_ACTOR_RIG_METHOD]
 #: the method of rule ``retarget_semantic``: the actor weights solved from the personalized rig
 #: (rule ``actor_rig_weights``) carried to a character by shape name
 SEMANTIC_METHOD = "semantic_actor_rig"
@@ -30,7 +36,7 @@ SEMANTIC_METHOD = "semantic_actor_rig"
 #: it started from (the baseline without personalization); metric keys ``retarget.<source>_weights``
 ACTOR_RIG_SOURCES = ["actor_rig", "template_rig"]
 #: every method run per (performance, character), in report order
-PIPELINE_METHODS = RIBERA_METHODS + [SEOL_METHOD, SEMANTIC_METHOD]
+PIPELINE_METHODS = RIBERA_METHODS + SEOL_METHODS + [SEMANTIC_METHOD]
 #: the Ribera variants one of which is ``params.retarget.ribera.primary``
 RIBERA_VARIANTS = ("ribera", "ribera_activation", "ribera_fit", RIBERA_ACTOR_RIG_METHOD)
 #: the Ribera variant whose numbers are also reported as ``retarget.ribera.*`` (the default of ``primary``)
@@ -42,7 +48,7 @@ PRIMARY_PREFIX = "ribera"
 #: with its own constants (:meth:`rigbuild.retarget.params.RiberaParams.for_method`): ``ribera_paper``
 METHOD_KEYS = {"ribera": "ribera_paper", "ribera_activation": "ribera_activation", "ribera_fit": "ribera_fit",
                RIBERA_ACTOR_RIG_METHOD: "ribera_fit_actor_rig", "rbf": "rbf_baseline",
-               "deformation": "deformation_baseline", "seol": "seol",
+               "deformation": "deformation_baseline", "seol": "seol", SEOL_ACTOR_RIG_METHOD: "seol_actor_rig",
                "semantic_actor_rig": "semantic_actor_rig"}
 #: Seol job: result (spacetime solution or sec. 7 baseline) -> metric prefix
 SEOL_RESULT_KEYS = {
@@ -76,10 +82,19 @@ def method_metrics(method: str, character: str, values: Mapping[str, Any],
     return {prefix: {str(character): dict(values)} for prefix in metric_prefixes(method, primary)}
 
 
-def seol_result_metrics(per_result: Mapping[str, Mapping[str, Any]],
-                        character: str) -> dict[str, dict[str, dict[str, Any]]]:
-    """``{prefix: {character: values}}`` of a Seol job's results (:data:`SEOL_RESULT_KEYS`)."""
-    return {SEOL_RESULT_KEYS.get(name, name): {str(character): dict(values)} for name, values in per_result.items()}
+def seol_result_prefix(name: str, method: str = SEOL_METHOD) -> str:
+    """Metric prefix of a Seol job's result ``name`` (:data:`SEOL_RESULT_KEYS`): the spacetime solution under the
+    method's key; a baseline of ``seol_actor_rig`` under the baseline's key with ``_actor_rig`` appended."""
+    if name == "spacetime":
+        return METHOD_KEYS[method]
+    key = SEOL_RESULT_KEYS.get(name, name)
+    return key if method == SEOL_METHOD else f"{key}_actor_rig"
+
+
+def seol_result_metrics(per_result: Mapping[str, Mapping[str, Any]], character: str,
+                        method: str = SEOL_METHOD) -> dict[str, dict[str, dict[str, Any]]]:
+    """``{prefix: {character: values}}`` of a Seol job's results (:func:`seol_result_prefix`)."""
+    return {seol_result_prefix(name, method): {str(character): dict(values)} for name, values in per_result.items()}
 
 
 def wildcard(methods: list[str]) -> str:

@@ -24,7 +24,8 @@ from rigbuild.io.metrics import write_metrics_fragment
 from rigbuild.io.rigs import read_rig_npz
 from rigbuild.params import as_dict
 from rigbuild.retarget.common import check_marker_overlap
-from rigbuild.retarget.methods import RIBERA_ACTOR_RIG_METHOD, RIBERA_METHODS, method_metrics, seol_result_metrics
+from rigbuild.retarget.methods import (METHOD_KEYS, RIBERA_ACTOR_RIG_METHOD, RIBERA_METHODS, method_metrics,
+                                       seol_result_metrics)
 from rigbuild.retarget.params import ribera_from_config, seol_from_config
 
 Path = str | os.PathLike
@@ -194,18 +195,35 @@ def seol_neutral(files: Sequence[Path], frames: Sequence[int] | None, names: Seq
 
 def run_seol(performance: Path, rig_path: Path, neutral: Sequence[Path] | None, neutral_frames: Sequence[int] | None,
              character: str, performance_name: str, seol: Mapping[str, Any] | None, *, weights: Path,
-             weights_json: Path, gltf: Path, plot: Path, metrics: Path, system: Path) -> dict[str, Any]:
+             weights_json: Path, gltf: Path, plot: Path, metrics: Path, system: Path, method: str = "seol",
+             actor_rig: Path | Sequence[Path] | None = None,
+             marker_map: Path | Sequence[Path] | None = None) -> dict[str, Any]:
     """Rule ``retarget_seol``: spacetime expression cloning (Seol et al. 2012) of one performance onto one
     character, with the sec. 7 per-frame baselines, the fig. 11 velocity-error plot and ``system.npz`` for
     ``rigbuild edit``.
 
     neutral : tracked ROM marker files whose rows ``neutral_frames`` are neutral poses (None: the take's first
-    frame); seol : ``params.retarget.seol``. Writes the outputs named by the keywords; returns the metrics."""
+    frame); seol : ``params.retarget.seol``; method : one of :data:`~rigbuild.retarget.methods.SEOL_METHODS`;
+    actor_rig, marker_map : method ``seol_actor_rig`` only, the personalized ``rig.npz`` and the take's
+    ``marker_map.json`` on it (:func:`load_rig_at_markers`; the source neutral and expression space,
+    :mod:`rigbuild.retarget.seol.actor_space`), each a path or a list of at most one (:func:`one_input`).
+    Writes the outputs named by the keywords; returns the metrics."""
     from rigbuild.retarget.common import reorder_markers
     from rigbuild.retarget.seol import retarget_seol
     from rigbuild.retarget.seol_outputs import plot_velocity_error
 
+    from rigbuild.retarget.methods import SEOL_ACTOR_RIG_METHOD, SEOL_METHODS
+
     p = seol_from_config(seol)
+    if method not in SEOL_METHODS:
+        raise InputError(f"unknown method '{method}'", path="rules", fix=f"use one of {SEOL_METHODS}")
+    rig_at_markers = None
+    actor_rig, marker_map = one_input(actor_rig), one_input(marker_map)
+    if method == SEOL_ACTOR_RIG_METHOD:
+        if not actor_rig or not marker_map:
+            raise InputError(f"method '{method}' needs the personalized rig and the take's marker map", path="rules",
+                             fix="give rule retarget_seol the inputs actor_rig and marker_map for this method")
+        rig_at_markers = load_rig_at_markers(actor_rig, marker_map)
     t0 = time.perf_counter()
     take = read_markers(performance)
     rig = read_rig_npz(rig_path)
@@ -217,13 +235,15 @@ def run_seol(performance: Path, rig_path: Path, neutral: Sequence[Path] | None, 
     X = reorder_markers(take.markers, take.names, names, path=performance)
     Y = None if not neutral else seol_neutral([neutral] if isinstance(neutral, str) else neutral, neutral_frames, names)
     res = retarget_seol(X, rig, marker_names=names, source_neutral=Y, params=p, fps=float(take.fps),
-                        source_path=performance)
+                        source_path=performance, actor_rig=rig_at_markers)
     seconds = time.perf_counter() - t0
     fps = take.fps
+    meta = {"method": "seol2012", "alpha": res.alpha, "character": rig.name, "scale_match": p.scale_match,
+            "params": as_dict(p)}
+    if rig_at_markers is not None:
+        meta.update(method="seol2012_actor_rig", actor_rig=str(actor_rig), marker_map=str(marker_map))
     write_weight_curves_csv(weights, res.weights, res.shape_names, fps)
-    write_weight_curves_json(weights_json, res.weights, res.shape_names, fps,
-                             meta={"method": "seol2012", "alpha": res.alpha, "character": rig.name,
-                                   "scale_match": p.scale_match, "params": as_dict(p)})
+    write_weight_curves_json(weights_json, res.weights, res.shape_names, fps, meta=meta)
     # head motion and pivot are in mm: write the character in mm too
     write_gltf_animation(gltf, rig if rig.units == "mm" else rig.to_units("mm"), res.weights, fps,
                          res.head_rotation, res.head_translation, pivot=res.target_pivot)
@@ -233,19 +253,24 @@ def run_seol(performance: Path, rig_path: Path, neutral: Sequence[Path] | None, 
               "marker_residual_mm": seol_marker_residual(res),
               "second_difference_rms": float(np.sqrt(np.mean(np.diff(res.weights, 2, axis=0) ** 2)))
               if res.weights.shape[0] > 2 else 0.0, **plausibility_values(res.weights, res.shape_names)}
+    if res.actor_space is not None:  # seol_actor_rig: how much of the source side the personalized rig gave
+        values.update(rig_space_shapes=int(res.actor_space.shapes.sum()),
+                      rig_space_markers=int(res.actor_space.markers.sum()),
+                      rig_alignment_rms_mm=float(res.actor_space.alignment_rms_mm))
     per_result = {}
     for name, curve in res.velocity_error.items():
         W = res.weights if name == "spacetime" else res.baselines[name]
         per_result[name] = {"velocity_error": float(curve.sum()), "weight_min": float(W.min()),
                             "weight_max": float(W.max())}
-    body = seol_result_metrics(per_result, character)
-    body["seol"][str(character)] = {**values, **body["seol"][str(character)]}
+    body = seol_result_metrics(per_result, character, method)
+    key = METHOD_KEYS[method]
+    body[key][str(character)] = {**values, **body[key][str(character)]}
     write_metrics_fragment(metrics, "retarget", body)
     logging.getLogger("rigbuild.retarget.seol").info(
-        "seol %s -> %s: %d frames in %.2f s, velocity error %.1f (Range PF %.1f, Prior PF %.1f)", performance_name,
-        character, X.shape[0], seconds, per_result["spacetime"]["velocity_error"],
+        "%s %s -> %s: %d frames in %.2f s, velocity error %.1f (Range PF %.1f, Prior PF %.1f)", method,
+        performance_name, character, X.shape[0], seconds, per_result["spacetime"]["velocity_error"],
         per_result["perframe_range"]["velocity_error"], per_result["perframe_prior"]["velocity_error"])
-    return {"seol": values, **per_result}
+    return {key: values, **per_result}
 
 
 # ------------------------------------------------------------------------------- the actor's own rig

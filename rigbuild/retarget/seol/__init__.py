@@ -43,6 +43,7 @@ Modules (one concept each):
 
 - :mod:`.head_motion`: sec. 3.1 head motion (and the occlusion bridging);
 - :mod:`.scale_match`: sec. 3.2 scale-proportion matching;
+- :mod:`.actor_space`: the source side from the actor's personalized rig (method ``seol_actor_rig``);
 - :mod:`.prior`: sec. 5 PCA prior and its corner-frequency strength;
 - :mod:`.sobolev`: sec. 7.1 Sobolev weights;
 - :mod:`.system`: eq. 4 over all frames (:class:`SeolSystem`) and its bounded solve;

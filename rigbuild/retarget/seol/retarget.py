@@ -42,6 +42,7 @@ class SeolResult:
     baselines: dict[str, np.ndarray] = field(default_factory=dict)
     velocity_error: dict[str, np.ndarray] = field(default_factory=dict)
     alpha: float = DEFAULT_ALPHA
+    actor_space: object | None = None  # :class:`~rigbuild.retarget.seol.actor_space.ActorExpressionSpace` or None
 
 
 def target_marker_blendshapes(target: Rig, marker_names: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -79,6 +80,7 @@ def retarget_seol(
     remove_head: bool = True,
     baselines: bool = True,
     source_path: str | os.PathLike | None = None,
+    actor_rig=None,
     **options,
 ) -> SeolResult:
     """Retarget a marker performance onto a blendshape target (Seol et al. 2012, all sections).
@@ -131,6 +133,11 @@ def retarget_seol(
     remove_head : remove the head motion (sec. 3.1); False for head-stabilized markers.
     baselines : also compute the sec. 7 per-frame baselines and all velocity-error curves.
     source_path : the take's file, named in errors and warnings.
+    actor_rig : :class:`~rigbuild.retarget.ribera.RigAtMarkers`, the actor's personalized rig at the markers
+        (method ``seol_actor_rig``): the source side comes from it (:mod:`rigbuild.retarget.seol.actor_space`):
+        the source neutral is the rig's neutral Kabsch-fitted onto ``source_neutral``, and each character shape
+        with a rig shape of the same name is matched as that rig shape (rotated into the take's frame) instead
+        of ``scale_match``'s neutral-guessed map; ``result.actor_space`` keeps it. None: the paper's calibration.
 
     Occlusion gaps: head motion is fitted on each frame's visible markers and bridged over frames with fewer
     than half of them (:func:`min_visible_markers`, :func:`remove_head_motion`); such frames' markers are
@@ -145,8 +152,8 @@ def retarget_seol(
     Returns :class:`SeolResult`.
     """
     p = _with_options(params, options)
-    X, Y, n_tgt, d_star, warp = _matched_source_and_target(source_markers, target, marker_names, source_neutral, p,
-                                                           fps)
+    X, Y, n_tgt, d_star, warp, space = _matched_source_and_target(source_markers, target, marker_names,
+                                                                  source_neutral, p, fps, actor_rig)
     F, M, _ = X.shape
     K = d_star.shape[0]
     B = d_star.reshape(K, -1).T
@@ -174,7 +181,7 @@ def retarget_seol(
     W = _solve_spacetime(system, mask, vals, p)
     result = SeolResult(weights=W, shape_names=names, head_rotation=R, head_translation=head_d,
                         source_pivot=src_pivot, target_pivot=n_tgt.mean(0), system=system, warp=warp,
-                        alpha=float(alpha))
+                        alpha=float(alpha), actor_space=space)
     result.velocity_error["spacetime"] = velocity_error_per_frame(W, B, S, vis)
     if baselines:
         _add_baselines(result, system, B, S, P, pp, p, mask, vals, vis)
@@ -199,9 +206,10 @@ def _with_options(params: SeolParams | None, options: Mapping) -> SeolParams:
 
 
 def _matched_source_and_target(source_markers, target: Rig, marker_names, source_neutral, p: SeolParams,
-                               fps: float | None):
+                               fps: float | None, actor_rig=None):
     """Source markers (F, M, 3) (low-passed), the source neutral Y (M, 3), the target's neutral markers and its
-    marker blendshapes carried into the source's proportions (sec. 3.2): n_tgt (M, 3), d_star (K, M, 3), warp."""
+    marker blendshapes carried into the source's proportions (sec. 3.2): n_tgt (M, 3), d_star (K, M, 3), warp, and
+    the actor's expression space (None without ``actor_rig``: then Y is ``source_neutral``)."""
     X = np.asarray(source_markers, dtype=np.float64)
     if X.ndim != 3 or X.shape[2] != 3:
         raise InputError(f"source markers must be (F, M, 3), got {X.shape}")
@@ -221,17 +229,34 @@ def _matched_source_and_target(source_markers, target: Rig, marker_names, source
         raise InputError(f"source neutral must be a finite ({M}, 3) array, got {Y.shape}")
     if p.scale_match not in SCALE_MATCH_MODES:
         raise InputError(f"scale_match '{p.scale_match}' unknown", fix=f"use one of {list(SCALE_MATCH_MODES)}")
-    mesh = mvid = None
-    if p.scale_match == "deformation":
-        mesh = target if target.units == "mm" else target.to_units("mm")
-        mvid = _marker_vertex_ids(mesh, marker_names)
-    _, d_star, warp = proportion_match(n_tgt, d_tgt, Y, p.scale_match, p.scale_match_kernel, SCALE_MATCH_NEIGHBORS,
-                                       mesh=mesh, marker_vertices=mvid)
+    space = None
+    if actor_rig is not None:
+        from rigbuild.retarget.seol.actor_space import actor_expression_space
+
+        mnames = list(marker_names) if marker_names is not None else list(target.marker_names)
+        space = actor_expression_space(actor_rig, Y, mnames, list(target.shape_names))
+        Y = space.neutral
+    if space is not None and space.covered.all():  # every shape from the actor's rig: no guessed map needed
+        from rigbuild.retarget.proportion import fit_proportion_map
+
+        warp = fit_proportion_map(n_tgt, Y, p.scale_match_kernel)  # kept for the record (SeolResult.warp)
+        d_star = space.deltas.copy()
+    else:
+        mesh = mvid = None
+        if p.scale_match == "deformation":
+            mesh = target if target.units == "mm" else target.to_units("mm")
+            mvid = _marker_vertex_ids(mesh, marker_names)
+        _, d_star, warp = proportion_match(n_tgt, d_tgt, Y, p.scale_match, p.scale_match_kernel,
+                                           SCALE_MATCH_NEIGHBORS, mesh=mesh, marker_vertices=mvid)
+        if space is not None:
+            from rigbuild.retarget.seol.actor_space import actor_space_blendshapes
+
+            d_star = actor_space_blendshapes(space, d_star)
     if p.gaps not in GAP_MODES:
         raise InputError(f"gaps '{p.gaps}' unknown", fix="use 'mask' or 'interpolate'")
     if p.gaps == "interpolate":
         X = fill_marker_gaps(X)
-    return X, Y, n_tgt, d_star, warp
+    return X, Y, n_tgt, d_star, warp, space
 
 
 def _stabilized(X: np.ndarray, Y: np.ndarray, B: np.ndarray, d_star: np.ndarray, p: SeolParams,
