@@ -168,6 +168,8 @@ STAGE_BOUNDS = {
     "retarget.ribera_fit.template.weight_mae": ("<", 0.5),
     "retarget.seol.template.mean_correlation": (">", 0.5),
     "retarget.seol.template.weight_mae": ("<", 0.5),
+    "retarget.actor_rig_weights.mean_correlation": (">", 0.5),
+    "retarget.semantic_actor_rig.template.mean_correlation": (">", 0.5),
 }
 
 
@@ -189,7 +191,10 @@ def test_metrics_hold_every_stage(e2e_run):
                 "personalization.residual_reduction", "personalization.residual_reduction_weighted",
                 "retarget.seol.template.mean_correlation", "retarget.ribera.template.weight_mae",
                 "retarget.ribera_paper.template.mean_correlation",
-                "retarget.rbf_baseline.template.mean_correlation", "retarget.seol.template.velocity_error"):
+                "retarget.rbf_baseline.template.mean_correlation", "retarget.seol.template.velocity_error",
+                "retarget.actor_rig_weights.mean_correlation", "retarget.actor_rig_weights.marker_map_error_mm",
+                "retarget.template_rig_weights.mean_correlation",
+                "retarget.semantic_actor_rig.template.mean_correlation"):
         assert key in flat and flat[key] is not None, key
     assert not any(k.startswith("tracking.mask_") or "_unweighted" in k or "ribera_faithful" in k for k in flat)
 
@@ -200,6 +205,47 @@ def test_every_stage_is_within_loose_bounds(e2e_run):
     assert flat["personalization.objective_monotone"] is True
     bad = out_of_bounds(flat)
     assert not bad, "; ".join(bad)
+
+
+def _planned_jobs(text: str) -> list[tuple[str, dict]]:
+    """(rule, wildcards) of every job in a ``snakemake -n`` listing."""
+    jobs, rule = [], None
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith("rule ") and line.endswith(":"):
+            rule = line[5:-1]
+            jobs.append((rule, {}))
+        elif line.startswith("localrule ") and line.endswith(":"):
+            rule = line[10:-1]
+            jobs.append((rule, {}))
+        elif line.startswith("wildcards:") and jobs:
+            jobs[-1][1].update(dict(kv.split("=", 1) for kv in line[len("wildcards:"):].strip().split(", ") if "=" in kv))
+    return jobs
+
+
+def test_a_new_personalized_rig_reruns_what_reads_it_and_only_that(e2e_run):
+    """Editing personalize/rig.npz re-plans the jobs that read the personalized rig (the actor-rig solve, the
+    semantic transfer, the Ribera and Seol actor-rig variants, their evaluation, metrics and report) and no other
+    retargeting job: the template-rig solve and every other Ribera and Seol method stay done."""
+    tmp, results = e2e_run["tmp"], e2e_run["results"]
+    rig = results / "personalize" / "rig.npz"
+    st = rig.stat()
+    try:
+        os.utime(rig, ns=(st.st_atime_ns, st.st_mtime_ns + 10**10))  # 10 s newer than what was built from it
+        r = subprocess.run(_cmd(tmp, "-n", "--rerun-triggers", "mtime"), capture_output=True, text=True, env=_env(),
+                           cwd=tmp, timeout=600)
+    finally:
+        os.utime(rig, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
+    jobs = _planned_jobs(r.stdout + r.stderr)
+    rules = {rule for rule, _ in jobs}
+    assert {"actor_rig_weights", "retarget_semantic", "eval_actor_rig", "metrics", "report"} <= rules, rules
+    assert not rules & {"personalize", "track_sequence", "calibrate", "character_rig"}, rules
+    for rule, wc in jobs:
+        if rule in ("actor_rig_weights", "eval_actor_rig"):
+            assert wc.get("source") == "actor_rig", (rule, wc)
+        if rule in ("retarget_ribera", "retarget_seol", "eval_retarget"):
+            assert wc.get("method", "").endswith("_actor_rig"), (rule, wc)
 
 
 def test_report_renders_every_section_in_chromium(e2e_run, tmp_path):
