@@ -11,8 +11,10 @@ from rigbuild.retarget.methods import wildcard as _method_wildcard
 
 
 def _retarget_rom_markers(wc):
-    """The actor's tracked ROM markers, one file per ROM sequence (session order)."""
-    return [f"results/{wc.session}/track/{seq.name}/markers.npz" for seq in session_spec(wc.session).rom]
+    """The actor's tracked ROM markers, one file per ROM sequence (session order); method ribera_fit_actor_rig:
+    the tracked vertices, sampled at the take's marker map on the personalized rig."""
+    name = "vertices.npz" if getattr(wc, "method", None) == RIBERA_ACTOR_RIG_METHOD else "markers.npz"
+    return [f"results/{wc.session}/track/{seq.name}/{name}" for seq in session_spec(wc.session).rom]
 
 
 def _retarget_neutral_frames(wc):

@@ -222,3 +222,17 @@ def test_actor_weights_from_the_true_rig_follow_the_performance(procedural_take)
     b0v, Dv = sample_rig_at_markers(rig.neutral, rig.deltas, rig.faces, start)
     vsol = solve_actor_weights(b0v, Dv, lowpass_markers(P, 30.0, p.marker_lowpass_hz), lambda_l1=p.lambda_l1)
     assert mean_correlation(vsol.weights, W, active_shapes(W)) < corr - 0.05
+
+
+def test_tracked_markers_on_map_sample_each_frame_at_the_skin_points():
+    from rigbuild.retarget.actor_rig import tracked_markers_on_map
+
+    V, F = _square()
+    frames = np.stack([V, V + [1.0, 2.0, 3.0], V * 2.0])
+    m = MarkerMap(["a", "b"], np.array([0, 1]), np.array([[1.0, 0, 0], [0, 0.5, 0.5]]), np.array([0.0, 1.0]))
+    out = tracked_markers_on_map(frames, F, m, lost=np.array([False, False, True]))
+    assert np.allclose(out[0], [[0, 0, 0], [5, 10, 1]])  # b: the middle of an edge, 1 mm along +z
+    assert np.allclose(out[1], out[0] + [1, 2, 3])
+    assert np.isnan(out[2]).all()
+    with pytest.raises(InputError, match="topology"):
+        tracked_markers_on_map(frames, F[:1], m)

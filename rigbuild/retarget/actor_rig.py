@@ -416,6 +416,22 @@ def marker_map_for_take(rig, names: Sequence[str], path=None) -> MarkerMap:
     return vertex_marker_map(list(names), rig.marker_vertices[[index[n] for n in names]], rig.faces)
 
 
+def tracked_markers_on_map(vertices: np.ndarray, faces: np.ndarray, marker_map: MarkerMap,
+                           lost: np.ndarray | None = None) -> np.ndarray:
+    """A tracked sequence's markers at the marker map's skin points: (F, M, 3) mm from the tracked vertices
+    (F, V, 3) of the rig's topology (the map's triangles and barycentric coordinates, its normal offsets along
+    each frame's triangle normals); rows of ``lost`` (F,) frames are NaN. The range of motion then shows the
+    markers where the performance's markers sit, not at the template's marker vertices."""
+    V = np.asarray(vertices, dtype=np.float64)
+    if int(marker_map.face_ids.max(initial=-1)) >= np.asarray(faces).shape[0]:
+        raise InputError("the marker map names triangles the tracked mesh lacks (another topology)",
+                         fix="place the markers on a rig of the tracked topology (the personalized rig)")
+    out = marker_map.points(V, faces)
+    if lost is not None:
+        out[np.asarray(lost, dtype=bool)] = np.nan
+    return out
+
+
 # ------------------------------------------------------------------------------------- semantic transfer
 def semantic_transfer(weights: np.ndarray, names: Sequence[str], character_names: Sequence[str]) -> tuple[np.ndarray, list[str]]:
     """The actor weights (F, K) carried to a character by shape name: (F, K_c) in the character's order (a

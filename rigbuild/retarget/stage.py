@@ -71,6 +71,28 @@ def one_input(files) -> str | None:
     return files[0] if files else None
 
 
+def tracked_takes_on_map(files: Sequence[Path], rig_path: Path, marker_map_path: Path, fps: float) -> list:
+    """The tracked ROM sequences (``vertices.npz``: vertices F x V x 3 mm, lost F) sampled at a take's marker map
+    on the personalized rig (:func:`rigbuild.retarget.actor_rig.tracked_markers_on_map`), as marker takes."""
+    import json
+
+    from rigbuild.io.markers import MarkerTake
+    from rigbuild.io.rigs import load_rig
+    from rigbuild.retarget.actor_rig import MarkerMap, tracked_markers_on_map
+
+    faces = load_rig(rig_path, units="mm").faces
+    mmap = MarkerMap.from_json(json.loads(open(marker_map_path).read())["markers"], path=marker_map_path)
+    takes = []
+    for f in files:
+        with np.load(f) as z:
+            if "vertices" not in z:
+                raise InputError("a tracked sequence without vertices", path=f, fix="re-run the track rules")
+            lost = z["lost"] if "lost" in z else None
+            markers = tracked_markers_on_map(z["vertices"], faces, mmap, lost)
+        takes.append(MarkerTake(markers, list(mmap.names), float(fps)))
+    return takes
+
+
 def load_rig_at_markers(rig_path: Path, marker_map_path: Path):
     """The personalized rig (``rig.npz``, mm) sampled at a take's markers placed on it (``marker_map.json`` of
     rule ``actor_rig_weights``): :class:`~rigbuild.retarget.ribera.RigAtMarkers` in the rig's frame."""
@@ -112,7 +134,9 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
     whatever ``ribera`` says (:meth:`~rigbuild.retarget.params.RiberaParams.for_method`; the weight files'
     ``params`` are the ones it ran with); actor_rig, marker_map : method ``ribera_fit_actor_rig`` only, the
     personalized ``rig.npz`` and the take's ``marker_map.json`` on it (its guesses g_k,
-    :func:`load_rig_at_markers`), each a path or a list of at most one (:func:`one_input`). Writes the outputs
+    :func:`load_rig_at_markers`), each a path or a list of at most one (:func:`one_input`); with them,
+    ``training`` may be the tracked ``vertices.npz`` files, sampled at the marker map
+    (:func:`tracked_takes_on_map`: the range of motion at the performance's own marker points). Writes the outputs
     named by the keywords; returns the metrics."""
     from rigbuild.retarget.preview import write_preview
     from rigbuild.retarget.run import make_training_set, retarget_performance
@@ -130,7 +154,10 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
         rig_at_markers = load_rig_at_markers(actor_rig, marker_map)
     take = read_markers(performance)
     files = list(training)
-    takes = [read_markers(f) for f in files]
+    if rig_at_markers is not None and all(str(f).endswith("vertices.npz") for f in files):
+        takes = tracked_takes_on_map(files, actor_rig, marker_map, take.fps)
+    else:
+        takes = [read_markers(f) for f in files]
     ts = make_training_set([t.markers for t in takes], [t.names for t in takes], list(neutral_frames or [0]), files)
     rig = read_rig_npz(rig_path)
     if rig.marker_vertices.size == 0:
