@@ -10,6 +10,7 @@ import traceback
 from pathlib import Path
 from typing import Any, Callable
 
+from rigbuild.determinism import setup_job
 from rigbuild.progress import LOGGER as PROGRESS_LOGGER
 
 
@@ -26,8 +27,11 @@ def run_logged(snakemake: Any, main: Callable[[Any], None]) -> None:
     On an exception the traceback is written to the log and the error's message is printed to the
     real stderr (so the user sees 'file: what is wrong / fix: ...' in the Snakemake output), then the
     process exits non-zero. Progress lines (:mod:`rigbuild.progress`) also go to the real stderr, prefixed with
-    :func:`job_label`, so that a long job is not silent in Snakemake's output.
+    :func:`job_label`, so that a long job is not silent in Snakemake's output. Before ``main`` runs,
+    :func:`rigbuild.determinism.setup_job` sizes OpenCV's thread pool to the job's ``threads`` and seeds the
+    global random generators (two runs of a job on the same inputs give the same outputs).
     """
+    pinned = setup_job(int(getattr(snakemake, "threads", 1) or 1))
     log_path = Path(snakemake.log[0]) if len(snakemake.log) else None
     if log_path is None:
         main(snakemake)
@@ -45,6 +49,7 @@ def run_logged(snakemake: Any, main: Callable[[Any], None]) -> None:
         shown.setFormatter(logging.Formatter(f"[{job_label(snakemake)}] %(message)s"))
         progress_logger = logging.getLogger(PROGRESS_LOGGER)
         progress_logger.addHandler(shown)
+        logging.getLogger(__name__).info("reproducibility: %s", pinned)
         t0 = time.perf_counter()
         try:
             main(snakemake)

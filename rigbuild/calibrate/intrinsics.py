@@ -19,6 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rigbuild.determinism import opencv_threads
 from rigbuild.errors import InputError
 
 _CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
@@ -73,6 +74,7 @@ def calibrate_intrinsics(
     image_size : (width, height).
     flags : OpenCV calibration flags (:func:`calibration_flags`); 0 = OpenCV's default model.
     criteria : OpenCV termination criteria; default 100 iterations / 1e-12.
+    OpenCV runs it on one thread: on more its result varies from call to call (:mod:`rigbuild.determinism`).
     """
     if len(object_points) < 2:
         raise InputError(f"camera '{camera}': {len(object_points)} usable board views, at least 2 are needed",
@@ -81,8 +83,9 @@ def calibrate_intrinsics(
     img = [np.ascontiguousarray(p, dtype=np.float32).reshape(-1, 1, 2) for p in image_points]
     w, h = (int(s) for s in image_size)
     K0 = np.array([[1.0, 0, (w - 1) / 2], [0, 1.0, (h - 1) / 2], [0, 0, 1]])  # ratio 1, centre (fixed-flag starts)
-    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, (w, h), K0, None,
-                                                    flags=flags, criteria=criteria or _CRITERIA)
+    with opencv_threads(1):  # more threads: a different K on every call (rigbuild.determinism)
+        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, (w, h), K0, None,
+                                                        flags=flags, criteria=criteria or _CRITERIA)
     R = np.stack([cv2.Rodrigues(r)[0] for r in rvecs])
     t = np.stack([np.asarray(tv, dtype=np.float64).reshape(3) for tv in tvecs])
     dist = np.asarray(dist, dtype=np.float64).reshape(-1)[:5]

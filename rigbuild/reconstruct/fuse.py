@@ -147,14 +147,15 @@ def poisson_mesh(points: np.ndarray, normals: np.ndarray, depth: int = 9, densit
     """Screened Poisson surface of an oriented cloud (open3d). Closed unless trimmed.
 
     ``density_quantile > 0`` removes vertices whose Poisson density is below that quantile (opens the
-    surface where there was no data). Returns vertices (V, 3) and triangles (F, 3).
+    surface where there was no data). Returns vertices (V, 3) and triangles (F, 3). Runs on one thread:
+    open3d's default (every hardware thread) gives different vertices on every call (:mod:`rigbuild.determinism`).
     """
     import open3d as o3d
 
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
     pc.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64))
     mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pc, depth=depth, scale=scale,
-                                                                            linear_fit=False)
+                                                                            linear_fit=False, n_threads=1)
     if density_quantile > 0:
         dens = np.asarray(dens)
         mesh.remove_vertices_by_mask(dens < np.quantile(dens, density_quantile))
