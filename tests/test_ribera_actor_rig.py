@@ -8,8 +8,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -19,6 +17,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from grid_mesh import grid_mesh
+from dry_run import planned_jobs, snakemake_dry_run
 from rigbuild.errors import InputError
 from rigbuild.paths import PROJECT_ROOT
 from rigbuild.retarget import ribera as rb
@@ -226,26 +225,10 @@ def test_entry_point_reads_the_personalized_rig_and_the_marker_map(tmp_path):
 
 # ------------------------------------------------------------------------------------------ the DAG
 def _snakemake(tmp_path: Path, *args: str) -> str:
-    exe = str(Path(sys.executable).with_name("snakemake"))
-    r = subprocess.run([exe, "-n", "--configfile", str(tmp_path / "config.yaml"), "--directory", str(tmp_path),
-                        "--snakefile", str(PROJECT_ROOT / "Snakefile"), "--cores", "1", *args],
-                       capture_output=True, text=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"}, timeout=300)
-    out = r.stdout + r.stderr
-    assert r.returncode == 0, out[-3000:]
-    return out
+    return snakemake_dry_run(tmp_path, *args)
 
 
-def _planned_jobs(out: str) -> list[tuple[str, dict]]:
-    """(rule, wildcards) of every job of a dry run's listing."""
-    jobs = []
-    for block in re.split(r"\n(?=(?:localrule|rule) \w+:)", out):
-        m = re.match(r"(?:localrule|rule) (\w+):", block)
-        if not m:
-            continue
-        wc = re.search(r"^\s+wildcards: (.*)$", block, re.M)
-        pairs = [p.split("=", 1) for p in wc.group(1).split(", ")] if wc else []
-        jobs.append((m.group(1), dict(pairs)))
-    return jobs
+_planned_jobs = planned_jobs
 
 
 def test_touching_the_personalized_rig_replans_only_the_jobs_that_read_it(tmp_path):

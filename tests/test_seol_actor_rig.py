@@ -9,8 +9,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -19,6 +17,8 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
+from dry_run import planned_jobs, snakemake_dry_run
+from grid_mesh import grid_mesh
 from rigbuild.errors import InputError
 from rigbuild.paths import PROJECT_ROOT
 from rigbuild.retarget.actor_rig import sample_rig_at_markers, vertex_marker_map
@@ -36,40 +36,19 @@ class _Named(dict):
 
 
 def _snakemake(tmp_path: Path, *args: str) -> str:
-    exe = str(Path(sys.executable).with_name("snakemake"))
-    r = subprocess.run([exe, "-n", "--configfile", str(tmp_path / "config.yaml"), "--directory", str(tmp_path),
-                        "--snakefile", str(PROJECT_ROOT / "Snakefile"), "--cores", "1", *args],
-                       capture_output=True, text=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"}, timeout=300)
-    out = r.stdout + r.stderr
-    assert r.returncode == 0, out[-3000:]
-    return out
+    return snakemake_dry_run(tmp_path, *args)
 
 
-def _planned_jobs(out: str) -> list[tuple[str, dict]]:
-    """(rule, wildcards) of every job of a dry run's listing."""
-    jobs = []
-    for block in re.split(r"\n(?=(?:localrule|rule) \w+:)", out):
-        m = re.match(r"(?:localrule|rule) (\w+):", block)
-        if not m:
-            continue
-        wc = re.search(r"^\s+wildcards: (.*)$", block, re.M)
-        pairs = [p.split("=", 1) for p in wc.group(1).split(", ")] if wc else []
-        jobs.append((m.group(1), dict(pairs)))
-    return jobs
+_planned_jobs = planned_jobs
 
 
 def _dome(n: int = 9, spacing: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
-    """An n x n grid (mm) bent into a dome ``z = -0.004 (r^2)`` (markers not coplanar), two triangles per cell."""
-    x, y = np.meshgrid(np.arange(n) * spacing, np.arange(n) * spacing)
+    """An n x n grid (mm, :func:`grid_mesh.grid_mesh`) bent into a dome ``z = -0.004 (r^2)`` (markers not
+    coplanar)."""
+    V, faces = grid_mesh(n, spacing * (n - 1))
     c = (n - 1) * spacing / 2
-    z = -0.004 * ((x - c) ** 2 + (y - c) ** 2)
-    V = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
-    faces = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a, b, cc, d = i * n + j, i * n + j + 1, (i + 1) * n + j, (i + 1) * n + j + 1
-            faces += [[a, b, d], [a, d, cc]]
-    return V, np.array(faces)
+    V[:, 2] = -0.004 * ((V[:, 0] - c) ** 2 + (V[:, 1] - c) ** 2)
+    return V, faces
 
 
 def _character_and_actor(scale: float = 1.5) -> tuple[Rig, Rig]:

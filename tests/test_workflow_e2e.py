@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 import yaml
 
+from dry_run import planned_jobs
 from rigbuild.io.metrics import flatten_metrics
 from rigbuild.paths import PROJECT_ROOT
 
@@ -207,22 +208,6 @@ def test_every_stage_is_within_loose_bounds(e2e_run):
     assert not bad, "; ".join(bad)
 
 
-def _planned_jobs(text: str) -> list[tuple[str, dict]]:
-    """(rule, wildcards) of every job in a ``snakemake -n`` listing."""
-    jobs, rule = [], None
-    for line in text.splitlines():
-        line = line.strip()
-        if line.startswith("rule ") and line.endswith(":"):
-            rule = line[5:-1]
-            jobs.append((rule, {}))
-        elif line.startswith("localrule ") and line.endswith(":"):
-            rule = line[10:-1]
-            jobs.append((rule, {}))
-        elif line.startswith("wildcards:") and jobs:
-            jobs[-1][1].update(dict(kv.split("=", 1) for kv in line[len("wildcards:"):].strip().split(", ") if "=" in kv))
-    return jobs
-
-
 def test_a_new_personalized_rig_reruns_what_reads_it_and_only_that(e2e_run):
     """Editing personalize/rig.npz re-plans the jobs that read the personalized rig (the actor-rig solve, the
     semantic transfer, the Ribera and Seol actor-rig variants, their evaluation, metrics and report) and no other
@@ -237,7 +222,7 @@ def test_a_new_personalized_rig_reruns_what_reads_it_and_only_that(e2e_run):
     finally:
         os.utime(rig, ns=(st.st_atime_ns, st.st_mtime_ns))
     assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
-    jobs = _planned_jobs(r.stdout + r.stderr)
+    jobs = planned_jobs(r.stdout + r.stderr)
     rules = {rule for rule, _ in jobs}
     assert {"actor_rig_weights", "retarget_semantic", "eval_actor_rig", "metrics", "report"} <= rules, rules
     assert not rules & {"personalize", "track_sequence", "calibrate", "character_rig"}, rules
