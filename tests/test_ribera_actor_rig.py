@@ -6,20 +6,15 @@ rig and the marker map, and only this method's jobs depend on the personalized r
 from __future__ import annotations
 
 import json
-import os
-import re
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 from scipy.spatial.transform import Rotation
 
 from grid_mesh import grid_mesh
-from dry_run import planned_jobs, snakemake_dry_run
+from dry_run import jobs_after_touching_the_personalized_rig
 from rigbuild.errors import InputError
-from rigbuild.paths import PROJECT_ROOT
 from rigbuild.retarget import ribera as rb
 from rigbuild.retarget.actor_rig import MarkerMap, sample_rig_at_markers, vertex_marker_map
 from rigbuild.retarget.methods import METHOD_KEYS, RIBERA_ACTOR_RIG_METHOD, RIBERA_METHODS
@@ -224,56 +219,15 @@ def test_entry_point_reads_the_personalized_rig_and_the_marker_map(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------ the DAG
-def _snakemake(tmp_path: Path, *args: str) -> str:
-    return snakemake_dry_run(tmp_path, *args)
-
-
-_planned_jobs = planned_jobs
-
-
 def test_touching_the_personalized_rig_replans_only_the_jobs_that_read_it(tmp_path):
     """Every file of the demo's DAG of the Ribera jobs (every method, two characters) made up to date at one
     time, then personalize/rig.npz touched: a dry run with ``--rerun-triggers mtime`` plans the marker map
     (actor_rig_weights) and the ribera_fit_actor_rig jobs, and no other Ribera method's job."""
-    cfg = yaml.safe_load((PROJECT_ROOT / "config" / "config.yaml").read_text())
-    cfg["sessions"] = {"demo": {**cfg["sessions"]["demo"], "path": str(tmp_path / "demo")}}
-    (tmp_path / "config.yaml").write_text(yaml.safe_dump(cfg))
     characters = ["template", "stylized"]
     targets = [f"results/demo/retarget/{m}/perf00/{c}/weights.csv" for m in RIBERA_METHODS for c in characters]
-    listing = _snakemake(tmp_path, "--forceall", *targets)
-    files = set()
-    for line in re.findall(r"^\s+(?:input|output): (.*)$", listing, re.M):
-        files.update(p.strip() for p in line.split(", ") if p.strip())
-    now = time.time() + 5  # later than any file outside tmp_path the DAG reads (the data, the code)
-    made = 0
-    for f in sorted(files):
-        p = Path(f) if os.path.isabs(f) else tmp_path / f
-        if tmp_path not in p.parents:
-            assert p.exists(), p  # outside the test's folder: read, never written
-            continue
-        if p.name == "session.yaml":  # read at DAG start: the generator's plan, what it will write
-            from rigbuild.synth.session import plan_session
-
-            p.parent.mkdir(parents=True, exist_ok=True)
-            p.write_text(yaml.safe_dump(plan_session("demo", cfg["sessions"]["demo"]["synthetic"])))
-        elif p.suffix:
-            p.parent.mkdir(parents=True, exist_ok=True)
-            p.touch()
-        else:  # directory() outputs (no suffix: calib, rom, overlay, heatmaps, rig_obj)
-            p.mkdir(parents=True, exist_ok=True)
-        made += 1
-    for f in sorted(files):
-        p = Path(f) if os.path.isabs(f) else tmp_path / f
-        if tmp_path in p.parents:
-            os.utime(p, (now, now))
-    assert made > 50
-    assert "Nothing to be done" in _snakemake(tmp_path, "--rerun-triggers=mtime", *targets)
-    rig = tmp_path / "results" / "demo" / "personalize" / "rig.npz"
-    assert rig.exists()
-    os.utime(rig, (now + 10, now + 10))
-    jobs = _planned_jobs(_snakemake(tmp_path, "--rerun-triggers=mtime", *targets))
-    ribera = sorted((w["method"], w["character"]) for r, w in jobs if r == "retarget_ribera")
-    assert ribera == sorted((RIBERA_ACTOR_RIG_METHOD, c) for c in characters)
+    jobs = jobs_after_touching_the_personalized_rig(tmp_path, targets)
+    planned = sorted((w["method"], w["character"]) for r, w in jobs if r == "retarget_ribera")
+    assert planned == sorted((RIBERA_ACTOR_RIG_METHOD, c) for c in characters)
     others = sorted({r for r, w in jobs if r != "retarget_ribera"})
     assert others == ["actor_rig_weights"], others
     assert [w["source"] for r, w in jobs if r == "actor_rig_weights"] == ["actor_rig"]

@@ -93,6 +93,18 @@ def tracked_takes_on_map(files: Sequence[Path], rig_path: Path, marker_map_path:
     return takes
 
 
+def actor_rig_for_method(method: str, actor_rig_method: str, rule: str, actor_rig: str | None,
+                         marker_map: str | None):
+    """The personalized rig at the take's markers (:func:`load_rig_at_markers`) when ``method`` is the rule's
+    actor-rig method (InputError naming the rule when its inputs are missing); None for the other methods."""
+    if method != actor_rig_method:
+        return None
+    if not actor_rig or not marker_map:
+        raise InputError(f"method '{method}' needs the personalized rig and the take's marker map", path="rules",
+                         fix=f"give rule {rule} the inputs actor_rig and marker_map for this method")
+    return load_rig_at_markers(actor_rig, marker_map)
+
+
 def load_rig_at_markers(rig_path: Path, marker_map_path: Path):
     """The personalized rig (``rig.npz``, mm) sampled at a take's markers placed on it (``marker_map.json`` of
     rule ``actor_rig_weights``): :class:`~rigbuild.retarget.ribera.RigAtMarkers` in the rig's frame."""
@@ -145,13 +157,8 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
     if method not in RIBERA_METHODS:
         raise InputError(f"unknown method '{method}'", path="config", fix=f"use one of {RIBERA_METHODS}")
     p = p.for_method(method)  # ``ribera``: the paper's constants whatever the config says
-    rig_at_markers = None
     actor_rig, marker_map = one_input(actor_rig), one_input(marker_map)
-    if method == RIBERA_ACTOR_RIG_METHOD:
-        if not actor_rig or not marker_map:
-            raise InputError(f"method '{method}' needs the personalized rig and the take's marker map", path="rules",
-                             fix="give rule retarget_ribera the inputs actor_rig and marker_map for this method")
-        rig_at_markers = load_rig_at_markers(actor_rig, marker_map)
+    rig_at_markers = actor_rig_for_method(method, RIBERA_ACTOR_RIG_METHOD, "retarget_ribera", actor_rig, marker_map)
     take = read_markers(performance)
     files = list(training)
     if rig_at_markers is not None and all(str(f).endswith("vertices.npz") for f in files):
@@ -244,13 +251,8 @@ def run_seol(performance: Path, rig_path: Path, neutral: Sequence[Path] | None, 
     p = seol_from_config(seol)
     if method not in SEOL_METHODS:
         raise InputError(f"unknown method '{method}'", path="rules", fix=f"use one of {SEOL_METHODS}")
-    rig_at_markers = None
     actor_rig, marker_map = one_input(actor_rig), one_input(marker_map)
-    if method == SEOL_ACTOR_RIG_METHOD:
-        if not actor_rig or not marker_map:
-            raise InputError(f"method '{method}' needs the personalized rig and the take's marker map", path="rules",
-                             fix="give rule retarget_seol the inputs actor_rig and marker_map for this method")
-        rig_at_markers = load_rig_at_markers(actor_rig, marker_map)
+    rig_at_markers = actor_rig_for_method(method, SEOL_ACTOR_RIG_METHOD, "retarget_seol", actor_rig, marker_map)
     t0 = time.perf_counter()
     take = read_markers(performance)
     rig = read_rig_npz(rig_path)
