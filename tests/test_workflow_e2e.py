@@ -216,7 +216,8 @@ def test_a_new_personalized_rig_reruns_what_reads_it_and_only_that(e2e_run):
     rig = results / "personalize" / "rig.npz"
     st = rig.stat()
     try:
-        os.utime(rig, ns=(st.st_atime_ns, st.st_mtime_ns + 10**10))  # 10 s newer than what was built from it
+        later = time.time_ns() + 10**10  # newer than every file built from it (run 2 wrote them minutes later)
+        os.utime(rig, ns=(st.st_atime_ns, later))
         r = subprocess.run(_cmd(tmp, "-n", "--rerun-triggers", "mtime"), capture_output=True, text=True, env=_env(),
                            cwd=tmp, timeout=600)
     finally:
