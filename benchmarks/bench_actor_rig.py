@@ -59,8 +59,6 @@ def tier_session(name: str) -> Path:
     """The tier's markers-only session (cached by the config's synthetic block)."""
     cfg = yaml.safe_load((PROJECT_ROOT / TIERS[name]).read_text())
     synthetic = cfg["sessions"][name]["synthetic"]
-    if name == "demo":
-        synthetic = cfg["sessions"]["demo"]["synthetic"]
     out = CACHE / name
     key = yaml.safe_dump(synthetic, sort_keys=True)
     if not (out / "key.yaml").exists() or (out / "key.yaml").read_text() != key:

@@ -308,7 +308,8 @@ def solve_frames_point_to_plane(b0: np.ndarray, D: np.ndarray, normals: np.ndarr
     else:
         R, t = np.array(pose[0], dtype=np.float64), np.array(pose[1], dtype=np.float64)
     W = np.zeros((F, Ko))
-    for _ in range(int(iterations)):
+    steps, settled = 0, False
+    for steps in range(1, int(iterations) + 1):
         y = b0[None] + np.einsum("fk,kmc->fmc", W, Do)
         q = (Pz - t[:, None]) @ R
         base = np.einsum("fmc,mc->fm", b0[None] - q, n) * v  # residual = base + Dn w + (y x n).omega + n.tau
@@ -325,10 +326,11 @@ def solve_frames_point_to_plane(b0: np.ndarray, D: np.ndarray, normals: np.ndarr
         z = -(S[..., Ko] + (S[..., :Ko] @ W[..., None])[..., 0])
         R, t = R @ _rotation_exp(z[:, :3]), t + (R @ z[:, 3:, None])[..., 0]
         if float(np.abs(z).max(initial=0.0)) < 1e-6:
+            settled = True
             break
     weights = np.zeros((F, K))
     weights[:, observable] = W
-    return ActorWeights(weights, R, t, np.full(F, np.nan), observable, int(iterations), True)
+    return ActorWeights(weights, R, t, np.full(F, np.nan), observable, steps, settled)
 
 
 def _placing_frames(visible: np.ndarray, n: int) -> np.ndarray:
