@@ -442,3 +442,47 @@ def test_make_camera_rig_k3_range_leaves_the_rest_of_the_layout():
     for a, b in zip(plain, with_k3):
         assert np.array_equal(a.K, b.K) and np.array_equal(a.R, b.R) and np.array_equal(a.dist[:4], b.dist[:4])
         assert np.abs(a.dist[2:4]).max() > 0  # tangential terms are drawn on every lens
+
+
+def _point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
+    """Brute force: the nearest of a dense barycentric grid over the triangle (accurate to ~1e-3 of its size)."""
+    s = np.linspace(0.0, 1.0, 201)
+    u, v = np.meshgrid(s, s)
+    keep = u + v <= 1.0
+    u, v = u[keep], v[keep]
+    pts = a + u[:, None] * (b - a) + v[:, None] * (c - a)
+    return float(np.linalg.norm(pts - p, axis=1).min())
+
+
+def test_dot_candidates_keep_dots_in_reach_in_ascending_order():
+    from rigbuild.render.common import dot_candidates
+
+    tri = np.array([[[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0]]])
+    centres = np.array([[100.0, 100.0, 0.0],   # far
+                        [3.0, 3.0, 0.0],       # inside
+                        [12.5, 0.0, 0.0],      # 2.5 mm beyond a corner: within r 1 + margin 2
+                        [20.0, 0.0, 0.0]])     # 10 mm away
+    cand = dot_candidates(tri, centres, np.ones(4), margin_mm=2.0)
+    assert cand.shape == (1, 4) and cand.dtype == np.int32
+    assert 1 in cand[0] and 2 in cand[0] and 0 not in cand[0]
+    kept = cand[0][cand[0] >= 0]
+    assert np.all(np.diff(kept) > 0)
+    assert np.all(cand[0][len(kept):] == -1)
+    # more candidates than slots: the triangle is marked for every dot
+    many = dot_candidates(tri, np.tile([[2.0, 2.0, 0.0]], (5, 1)), np.ones(5), margin_mm=2.0, k=4)
+    assert many.tolist() == [[-2, -1, -1, -1]]
+    assert dot_candidates(tri, np.zeros((0, 3)), np.ones(0), 2.0).tolist() == [[-1, -1, -1, -1]]
+
+
+def test_dot_candidates_never_miss_a_dot_within_reach():
+    from rigbuild.render.common import dot_candidates
+
+    rng = np.random.default_rng(3)
+    tri = rng.uniform(-20, 20, (40, 1, 3)) + rng.normal(0, 4, (40, 3, 3))
+    centres = rng.uniform(-25, 25, (60, 3))
+    radii = rng.uniform(1.0, 2.0, 60)
+    cand = dot_candidates(tri, centres, radii, margin_mm=2.0, k=60)
+    for f in range(tri.shape[0]):
+        for i in range(centres.shape[0]):
+            if _point_triangle_distance(centres[i], *tri[f]) < radii[i] + 2.0 - 1e-2:
+                assert i in cand[f], (f, i)

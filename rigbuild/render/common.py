@@ -326,6 +326,48 @@ def resolve_from_id_buffer(
 
 
 # ------------------------------------------------------------------ shading helpers
+#: Candidate dots kept per triangle by :func:`dot_candidates` (the GL shader's ivec4).
+DOT_CANDIDATES = 4
+
+
+def dot_candidates(tri: np.ndarray, centres: np.ndarray, radii: np.ndarray, margin_mm: float,
+                   k: int = DOT_CANDIDATES) -> np.ndarray:
+    """(F, k) int32: per triangle, every dot whose disc may reach within ``margin_mm`` of it, ascending.
+
+    tri : (F, 3, 3) triangle corners, mm; centres : (M, 3) dot centres, mm (same frame); radii : (M,) mm.
+    A dot is kept when ``|c - centroid| - R < r + margin_mm`` (``R`` the triangle's largest centroid-to-corner
+    distance), a superset of the dots within ``r + margin_mm`` of the triangle. Unused slots are -1; a
+    triangle with more than ``k`` candidates gets ``[-2, -1, ...]`` (try every dot).
+    """
+    from scipy.spatial import cKDTree
+
+    tri = np.asarray(tri, dtype=np.float64)
+    F = tri.shape[0]
+    out = np.full((F, k), -1, dtype=np.int32)
+    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    if F == 0 or centres.shape[0] == 0:
+        return out
+    radii = np.broadcast_to(np.asarray(radii, dtype=np.float64), (centres.shape[0],))
+    g = tri.mean(axis=1)
+    R = np.linalg.norm(tri - g[:, None], axis=2).max(axis=1)
+    reach = radii + margin_mm
+    pairs = cKDTree(g).query_ball_point(centres, reach + R.max())  # per dot: faces possibly in reach
+    dot = np.repeat(np.arange(centres.shape[0]), [len(q) for q in pairs])
+    face = np.fromiter((f for q in pairs for f in q), dtype=np.int64, count=dot.size)
+    keep = np.linalg.norm(centres[dot] - g[face], axis=1) - R[face] < reach[dot]
+    dot, face = dot[keep], face[keep]
+    order = np.lexsort((dot, face))
+    dot, face = dot[order], face[order]
+    start = np.searchsorted(face, np.arange(F))
+    rank = np.arange(face.size) - start[face]
+    fits = rank < k
+    out[face[fits], rank[fits]] = dot[fits]
+    counts = np.bincount(face, minlength=F)
+    out[counts > k] = -1
+    out[counts > k, 0] = -2
+    return out
+
+
 def light_in_camera(camera: Camera, light_dir) -> np.ndarray:
     """(3,) unit direction towards the light in the camera frame (``light_dir`` is world; None = default)."""
     l = np.asarray(DEFAULT_LIGHT_DIR if light_dir is None else light_dir, dtype=np.float64).reshape(3)

@@ -29,14 +29,18 @@ import weakref
 import numpy as np
 
 from rigbuild.camera import Camera
-from rigbuild.render.common import (RenderOptions, RenderResult, background_rgb, empty_result, finish_color,
-                                    finish_outputs, light_in_camera, lights_in_camera, pixel_rays, ring_search,
+from rigbuild.render.common import (DOT_CANDIDATES, RenderOptions, RenderResult, background_rgb, dot_candidates,
+                                    empty_result, finish_color, finish_outputs, light_in_camera, lights_in_camera,
+                                    pixel_rays, ring_search,
                                     shadow_frame, srgb_to_linear, vogel_taps)
 from rigbuild.render.mesh import TexturedMesh
 
 PINHOLE_MARGIN_PX = 2
 MSAA_SAMPLES = 4
 ANISOTROPY = 8.0
+#: The lit shader tries only each triangle's candidate dots (rigbuild.render.common.dot_candidates, within
+#: radius + this of the triangle) where the pixel footprint is below it, mm; elsewhere every dot.
+DOT_MARGIN_MM = 2.0
 
 _ID_VS = """
 #version 330
@@ -109,12 +113,14 @@ in vec3 in_pos;
 in vec3 in_normal;
 in vec2 in_uv;
 in vec2 in_mat;
+in ivec4 in_dots;
 out vec3 v_pos;
 out vec3 v_normal;
 out vec2 v_uv;
 out vec2 v_mat;
+flat out ivec4 v_dots;
 void main() {
-    v_pos = in_pos; v_normal = in_normal; v_uv = in_uv; v_mat = in_mat;
+    v_pos = in_pos; v_normal = in_normal; v_uv = in_uv; v_mat = in_mat; v_dots = in_dots;
     gl_Position = proj * vec4(in_pos, 1.0);
 }
 """
@@ -130,6 +136,7 @@ uniform int use_map_rough;
 uniform sampler2D dots;       // width M, row 0: camera-frame centre (mm), radius (mm); row 1: RGB 0..1
 uniform int n_dots;
 uniform vec2 dot_mat;         // paint F0, roughness (< 0: keep the skin's)
+uniform float dot_margin;     // mm: v_dots lists every dot within radius + dot_margin of the triangle
 uniform int n_lights;
 uniform int l_kind[8];        // 0 ambient, 1 directional, 2 point
 uniform vec3 l_vec[8];        // towards the light (unit) or position (mm), camera frame
@@ -146,6 +153,7 @@ in vec3 v_pos;
 in vec3 v_normal;
 in vec2 v_uv;
 in vec2 v_mat;
+flat in ivec4 v_dots;         // the triangle's candidate dots, ascending, -1 after the last; x = -2: too many
 out vec4 out_color;
 
 vec3 srgb2lin(vec3 c) {
@@ -175,8 +183,23 @@ float visibility(int s, vec3 p, float nl, float soft) {
         vec2 f = floor(t);
         vec2 fr = t - f;
         ivec2 i0 = ivec2(f);
-        acc += (1.0 - fr.x) * (1.0 - fr.y) * cmp(s, i0, ref) + fr.x * (1.0 - fr.y) * cmp(s, i0 + ivec2(1, 0), ref)
-             + (1.0 - fr.x) * fr.y * cmp(s, i0 + ivec2(0, 1), ref) + fr.x * fr.y * cmp(s, i0 + ivec2(1, 1), ref);
+        float c00, c10, c01, c11;
+        if (all(greaterThanEqual(i0, ivec2(0))) && all(lessThan(i0, ivec2(s_size - 1)))) {
+            // the 2x2 texels in one fetch: the footprint of (i0 + 1) / size is i0..i0+1 exactly
+            // (x: (i0.x, i0.y + 1), y: (i0.x + 1, i0.y + 1), z: (i0.x + 1, i0.y), w: i0)
+            vec4 g = textureGather(smap[s], (vec2(i0) + 1.0) / float(s_size));
+            c00 = ref <= g.w ? 1.0 : 0.0;
+            c10 = ref <= g.z ? 1.0 : 0.0;
+            c01 = ref <= g.x ? 1.0 : 0.0;
+            c11 = ref <= g.y ? 1.0 : 0.0;
+        } else {
+            c00 = cmp(s, i0, ref);
+            c10 = cmp(s, i0 + ivec2(1, 0), ref);
+            c01 = cmp(s, i0 + ivec2(0, 1), ref);
+            c11 = cmp(s, i0 + ivec2(1, 1), ref);
+        }
+        acc += (1.0 - fr.x) * (1.0 - fr.y) * c00 + fr.x * (1.0 - fr.y) * c10
+             + (1.0 - fr.x) * fr.y * c01 + fr.x * fr.y * c11;
     }
     return acc / float(nt);
 }
@@ -195,10 +218,23 @@ void main() {
         float fw = max(length(fwidth(v_pos)), 1e-6);
         float cover = 0.0;
         int which = 0;
-        for (int i = 0; i < n_dots; i++) {
-            vec4 d = texelFetch(dots, ivec2(i, 0), 0);
-            float ci = clamp((d.w - length(v_pos - d.xyz)) / fw + 0.5, 0.0, 1.0);
-            if (ci > cover) { cover = ci; which = i; }
+        // a dot covers this fragment only within radius + fw / 2 of its centre, and the fragment lies within
+        // fw / 2 of its triangle (the pixel centre of a partly covered pixel): the candidates hold every such
+        // dot while fw < dot_margin; else (grazing triangles, too many candidates) all dots are tried
+        if (v_dots.x == -2 || fw >= dot_margin) {
+            for (int i = 0; i < n_dots; i++) {
+                vec4 d = texelFetch(dots, ivec2(i, 0), 0);
+                float ci = clamp((d.w - length(v_pos - d.xyz)) / fw + 0.5, 0.0, 1.0);
+                if (ci > cover) { cover = ci; which = i; }
+            }
+        } else {
+            for (int k = 0; k < 4; k++) {
+                int i = v_dots[k];
+                if (i < 0) break;
+                vec4 d = texelFetch(dots, ivec2(i, 0), 0);
+                float ci = clamp((d.w - length(v_pos - d.xyz)) / fw + 0.5, 0.0, 1.0);
+                if (ci > cover) { cover = ci; which = i; }
+            }
         }
         a = mix(a, texelFetch(dots, ivec2(which, 1), 0).rgb, cover);
         if (dot_mat.x >= 0.0) fr.x = mix(fr.x, dot_mat.x, cover);
@@ -801,8 +837,15 @@ def _lit_color_pass(gl: _GL, camera: Camera, mesh: TexturedMesh, V, normals_cam,
     nrm = np.ascontiguousarray(normals_cam, dtype="f4")
     uv = np.ascontiguousarray(mesh.uvs[mesh.face_uvs.reshape(-1)], dtype="f4")
     fr = np.ascontiguousarray(mat.vertex_values(mesh.vertices.shape[0])[corners], dtype="f4")
+    dots = _dots_array(camera, mesh)
+    n_dots = 0 if mesh.dot_centers is None else mesh.dot_centers.shape[0]
+    cand = np.full((mesh.faces.shape[0], DOT_CANDIDATES), -1, dtype=np.int32)
+    if n_dots:
+        cand = dot_candidates(V[mesh.faces], dots[:n_dots, :3], dots[:n_dots, 3], DOT_MARGIN_MM)
+    cand = np.ascontiguousarray(np.repeat(cand, 3, axis=0), dtype="i4")  # one row per corner
     vbo_n, vbo_uv, vbo_m = ctx.buffer(nrm.tobytes()), ctx.buffer(uv.tobytes()), ctx.buffer(fr.tobytes())
-    buffers += [vbo_n, vbo_uv, vbo_m]
+    vbo_d = ctx.buffer(cand.tobytes())
+    buffers += [vbo_n, vbo_uv, vbo_m, vbo_d]
     prog["proj"].write(proj)
     gl.texture(mesh.texture).use(location=0)
     _set(prog, "albedo", 0)
@@ -812,14 +855,13 @@ def _lit_color_pass(gl: _GL, camera: Camera, mesh: TexturedMesh, V, normals_cam,
     use_s, use_r = mat.has_maps
     _set(prog, "use_map_f0", int(use_s))
     _set(prog, "use_map_rough", int(use_r))
-    dots = _dots_array(camera, mesh)
-    n_dots = 0 if mesh.dot_centers is None else mesh.dot_centers.shape[0]
     dots_tex = ctx.texture((dots.shape[0] // 2, 2), 4, dots.tobytes(), dtype="f4")
     dots_tex.filter = (gl.moderngl.NEAREST, gl.moderngl.NEAREST)
     buffers.append(dots_tex)
     dots_tex.use(location=2)
     _set(prog, "dots", 2)
     _set(prog, "n_dots", int(n_dots))
+    _set(prog, "dot_margin", float(DOT_MARGIN_MM))
     _set(prog, "dot_mat", (-1.0 if mat.dot_specular is None else float(mat.dot_specular),
                            -1.0 if mat.dot_roughness is None else float(mat.dot_roughness)))
     pad = MAX_LIGHTS - len(Ls)
@@ -841,7 +883,7 @@ def _lit_color_pass(gl: _GL, camera: Camera, mesh: TexturedMesh, V, normals_cam,
     _set(prog, "s_size", int(SHADOW_MAP_SIZE))
     _set(prog, "taps", [tuple(float(x) for x in t) for t in vogel_taps(PCF_TAPS)])
     vao_c = ctx.vertex_array(prog, [(vbo_pos, "3f", "in_pos"), (vbo_n, "3f", "in_normal"), (vbo_uv, "2f", "in_uv"),
-                                    (vbo_m, "2f", "in_mat")])
+                                    (vbo_m, "2f", "in_mat"), (vbo_d, "4i", "in_dots")])
     buffers.append(vao_c)
     color_fbo.use()
     color_fbo.clear(*bg_lin.tolist(), 1.0, depth=1.0)

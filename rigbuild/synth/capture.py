@@ -11,7 +11,7 @@ default the images are today's, bit for bit.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -134,6 +134,14 @@ def capture_face(camera, setup: CaptureSetup, vertices: np.ndarray, seed: int, m
                  dot_centers: np.ndarray | None = None, dot_radius_mm=1.5, dot_albedo=(25, 25, 25)) -> np.ndarray:
     """One ROM image (H, W, 3) uint8 of the face ``vertices`` (V, 3) mm; ``motion`` (V, 3) mm over the
     exposure (motion blur, with a sensor); painted dots at ``dot_centers`` (D, 3) with per-dot radius/albedo."""
+    return render_face(camera, setup, vertices, seed, motion, dot_centers, dot_radius_mm, dot_albedo)()
+
+
+def render_face(camera, setup: CaptureSetup, vertices: np.ndarray, seed: int, motion: np.ndarray | None = None,
+                dot_centers: np.ndarray | None = None, dot_radius_mm=1.5,
+                dot_albedo=(25, 25, 25)) -> Callable[[], np.ndarray]:
+    """:func:`capture_face` in two steps: renders now (GL, this thread) and returns ``finish() -> (H, W, 3)
+    uint8``, the sensor (numpy and OpenCV only: it may run on another thread while the next image renders)."""
     from rigbuild.render import render_mesh
     from rigbuild.render.common import noise_rng
     from rigbuild.render.mesh import TexturedMesh
@@ -142,22 +150,31 @@ def capture_face(camera, setup: CaptureSetup, vertices: np.ndarray, seed: int, m
     mesh = TexturedMesh(vertices, setup.faces, setup.uvs, setup.face_uvs, setup.texture, dot_centers=dot_centers,
                         dot_radius_mm=dot_radius_mm, dot_albedo=dot_albedo, vertex_motion=motion if blur else None)
     if not setup.linear:
-        return render_mesh(camera, mesh, lights=setup.lights, material=setup.material, noise_sigma=setup.noise_sigma,
-                           msaa=setup.msaa, seed=seed, with_geometry=False).color
+        color = render_mesh(camera, mesh, lights=setup.lights, material=setup.material, noise_sigma=setup.noise_sigma,
+                            msaa=setup.msaa, seed=seed, with_geometry=False).color
+        return lambda: color
     from rigbuild.render.sensor import apply_sensor
 
     res = render_mesh(camera, mesh, lights=setup.lights, material=setup.material, output="linear", msaa=setup.msaa,
                       seed=seed, with_geometry=setup.sensor.f_number is not None, with_motion=blur)
-    return apply_sensor(res.linear, camera, setup.sensor_for(camera), noise_rng(camera, seed), depth_mm=res.depth,
-                        motion_px=res.motion_px if blur else None)
+    return lambda: apply_sensor(res.linear, camera, setup.sensor_for(camera), noise_rng(camera, seed),
+                                depth_mm=res.depth, motion_px=res.motion_px if blur else None)
 
 
 def capture_board(camera, setup: CaptureSetup, board, R_board: np.ndarray, t_board: np.ndarray, seed: int) -> np.ndarray:
     """One calibration image (H, W, 3) uint8 of the board at pose (R_board, t_board), through the sensor."""
+    return render_board_capture(camera, setup, board, R_board, t_board, seed)()
+
+
+def render_board_capture(camera, setup: CaptureSetup, board, R_board: np.ndarray, t_board: np.ndarray,
+                         seed: int) -> Callable[[], np.ndarray]:
+    """:func:`capture_board` in two steps: renders now (GL) and returns ``finish() -> (H, W, 3) uint8`` (the
+    sensor, no GL: it may run on another thread)."""
     from rigbuild.render.board import render_board
 
     if not setup.linear:
-        return render_board(camera, board, R_board, t_board, noise_sigma=setup.noise_sigma, msaa=setup.msaa, seed=seed)
+        img = render_board(camera, board, R_board, t_board, noise_sigma=setup.noise_sigma, msaa=setup.msaa, seed=seed)
+        return lambda: img
     import dataclasses
 
     from rigbuild.render.common import noise_rng
@@ -165,4 +182,4 @@ def capture_board(camera, setup: CaptureSetup, board, R_board: np.ndarray, t_boa
 
     linear = render_board(camera, board, R_board, t_board, msaa=setup.msaa, seed=seed, output="linear")
     still = dataclasses.replace(setup.sensor_for(camera), f_number=None)  # boards: rendered without depth, so in focus
-    return apply_sensor(linear, camera, still, noise_rng(camera, seed))
+    return lambda: apply_sensor(linear, camera, still, noise_rng(camera, seed))

@@ -135,6 +135,46 @@ def _write_png(path: Path, image: np.ndarray) -> None:
             raise OSError(f"could not write {path}")
 
 
+class _BackgroundWriter:
+    """Finish (the sensor) and write each rendered image on one worker thread while the next one renders:
+    ``submit(path, finish)`` with ``finish() -> (H, W, 3) uint8``; at most ``depth`` images wait; ``wait()``
+    returns once all are written and re-raises the first error."""
+
+    def __init__(self, depth: int = 2) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="png-writer")
+        self._pending: list = []
+        self._depth = depth
+
+    def submit(self, path: Path, finish: Callable[[], np.ndarray]) -> None:
+        while len(self._pending) >= self._depth:
+            self._pending.pop(0).result()
+        self._pending.append(self._pool.submit(lambda: _write_png(path, finish())))
+
+    def __enter__(self) -> "_BackgroundWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        try:
+            if exc[0] is None:
+                self.wait()
+        finally:
+            for f in self._pending:
+                f.cancel()
+            self._pool.shutdown(wait=True)
+
+    def wait(self) -> None:
+        try:
+            while self._pending:
+                self._pending.pop(0).result()
+        except BaseException:
+            for f in self._pending:
+                f.cancel()
+            self._pending.clear()
+            raise
+
+
 def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | None,
                      progress: Callable[[str], None] | None = None) -> dict:
     """Render a whole synthetic session into ``out_dir`` (replaced if it exists). Returns timings.
@@ -274,16 +314,18 @@ def _render_calibration(tmp_dir: Path, gt: Path, spec, p: dict, cameras: list, f
     """Render ``calib/<cam>/<n>.png`` for random board poses; write the poses and their visibility."""
     from rigbuild.io.atomic import save_npz, write_json
     from rigbuild.progress import progress as progress_bar
-    from rigbuild.synth.capture import capture_board
+    from rigbuild.synth.capture import render_board_capture
     from rigbuild.synth.rig_layout import make_board_poses
 
     seed = int(p["seed"])
     poses, seen_by = make_board_poses(cameras, spec.board, n_poses=int(p["calib_poses"]), seed=seed + 1,
                                       center=face_centre)
-    for cam in progress_bar(cameras, "calibration images", unit="camera"):
-        for n, (Rb, tb) in enumerate(poses):
-            img = capture_board(cam, setup, spec.board, Rb, tb, seed=seed * 1000 + n)
-            _write_png(tmp_dir / "calib" / cam.id / f"{n}.png", img)
+    with _BackgroundWriter() as writer:
+        for cam in progress_bar(cameras, "calibration images", unit="camera"):
+            for n, (Rb, tb) in enumerate(poses):
+                writer.submit(tmp_dir / "calib" / cam.id / f"{n}.png",
+                              render_board_capture(cam, setup, spec.board, Rb, tb, seed=seed * 1000 + n))
+            writer.wait()  # the camera's images are on disk when its progress line says so
     say(f"calibration images: {len(cameras)} cameras x {len(poses)} poses")
     save_npz(gt / "board_poses.npz", R=np.array([r for r, _ in poses]), t=np.array([t for _, t in poses]))
     write_json(gt / "board_visibility.json", {"seen_fully_by": seen_by})
@@ -303,7 +345,7 @@ def _render_rom(gt: Path, spec, p: dict, actor, cameras: list, face_centre: np.n
     """
     from rigbuild.io.atomic import save_npz
     from rigbuild.progress import progress as progress_bar
-    from rigbuild.synth.capture import capture_face, exposure_motion
+    from rigbuild.synth.capture import exposure_motion, render_face
     from rigbuild.synth.dots import dot_centres
     from rigbuild.synth.motion import make_head_motion, make_rom_weights
 
@@ -314,27 +356,30 @@ def _render_rom(gt: Path, spec, p: dict, actor, cameras: list, face_centre: np.n
                             seed=seed + 2, coverage=int(rom_cfg["coverage"]),
                             peak_range=tuple(float(x) for x in rom_cfg["peak_range"]), hold_frames=holds)
     n_images = 0
-    for s, (seq, Wseq) in enumerate(progress_bar(list(zip(spec.rom, seqs)), "ROM images", unit="sequence")):
-        R, t = make_head_motion(Wseq.shape[0], seed=seed + 100 + s,
-                                max_rotation_deg=float(rom_cfg["max_rotation_deg"]),
-                                max_translation_mm=float(rom_cfg["max_translation_mm"]), bound=rom_cfg["head_bound"],
-                                neutral_pose_deg=float(rom_cfg["neutral_pose_deg"]),
-                                neutral_pose_mm=float(rom_cfg["neutral_pose_mm"]))
-        t_world = _rigid_about(face_centre, R, t)
-        verts = actor.evaluate(Wseq)
-        verts = np.einsum("fij,fvj->fvi", R, verts) + t_world[:, None, :]
-        for i, frame in enumerate(seq.frames):
-            centres = dot_centres(dots, verts[i]) if len(dots) else None
-            motion = exposure_motion(verts, i, setup.shutter) if setup.linear else None
-            for cam in cameras:
-                img = capture_face(cam, setup, verts[i], seed * 7919 + s * 1000 + i, motion, centres,
-                                   dots.radius_mm, dots.albedo)
-                _write_png(spec.rom_image(seq.name, cam.id, frame), img)
-                n_images += 1
-        save_npz(gt / "rom" / f"{seq.name}.npz", vertices=verts.astype(np.float32), weights=Wseq.astype(np.float32),
-                 rotation=R.astype(np.float32), translation=t_world.astype(np.float32),
-                 shape_names=np.asarray(actor.shape_names), frames=np.asarray(seq.frames))
-        say(f"ROM {seq.name}: {len(seq.frames)} frames x {len(cameras)} cameras")
+    with _BackgroundWriter() as writer:
+        for s, (seq, Wseq) in enumerate(progress_bar(list(zip(spec.rom, seqs)), "ROM images", unit="sequence")):
+            R, t = make_head_motion(Wseq.shape[0], seed=seed + 100 + s,
+                                    max_rotation_deg=float(rom_cfg["max_rotation_deg"]),
+                                    max_translation_mm=float(rom_cfg["max_translation_mm"]),
+                                    bound=rom_cfg["head_bound"],
+                                    neutral_pose_deg=float(rom_cfg["neutral_pose_deg"]),
+                                    neutral_pose_mm=float(rom_cfg["neutral_pose_mm"]))
+            t_world = _rigid_about(face_centre, R, t)
+            verts = actor.evaluate(Wseq)
+            verts = np.einsum("fij,fvj->fvi", R, verts) + t_world[:, None, :]
+            for i, frame in enumerate(seq.frames):
+                centres = dot_centres(dots, verts[i]) if len(dots) else None
+                motion = exposure_motion(verts, i, setup.shutter) if setup.linear else None
+                for cam in cameras:
+                    finish = render_face(cam, setup, verts[i], seed * 7919 + s * 1000 + i, motion, centres,
+                                         dots.radius_mm, dots.albedo)
+                    writer.submit(spec.rom_image(seq.name, cam.id, frame), finish)
+                    n_images += 1
+            writer.wait()
+            save_npz(gt / "rom" / f"{seq.name}.npz", vertices=verts.astype(np.float32), weights=Wseq.astype(np.float32),
+                     rotation=R.astype(np.float32), translation=t_world.astype(np.float32),
+                     shape_names=np.asarray(actor.shape_names), frames=np.asarray(seq.frames))
+            say(f"ROM {seq.name}: {len(seq.frames)} frames x {len(cameras)} cameras")
     return n_images
 
 
