@@ -37,3 +37,11 @@ def ict_rig(ict_folder):
     from rigbuild.io.rigs import read_ict_rig
 
     return read_ict_rig(ict_folder)
+
+
+@pytest.fixture(scope="session")
+def e2e_run(tmp_path_factory):
+    """The end-to-end session's one run (tests/e2e_run.py), shared by the e2e and SLURM tests."""
+    from e2e_run import run_e2e
+
+    return run_e2e(tmp_path_factory)

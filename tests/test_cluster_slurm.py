@@ -2,11 +2,13 @@
 ``workflow/profiles/slurm`` (snakemake-executor-plugin-slurm) on a one-node cluster on this machine.
 
 tests/cluster/slurm_up.sh starts munged, MariaDB + slurmdbd, slurmctld and slurmd (``make cluster-deps``
-installs them from Debian); the module stops what it started. The same session also runs locally
-(``--cores 2``, at the same time: the SLURM run idles between status checks). Checks: every job but the
-local ``all`` target went through sbatch and sacct (from the accounting database) lists it COMPLETED in
-partition ``cpu`` with its rule in the job comment; the SLURM run's metrics equal the local run's within
-the pipeline's run-to-run noise (:data:`TOLERANCES`).
+installs them from Debian); the module stops what it started. The local run it is compared with is the
+e2e tests' own run of the session (the session-scoped ``e2e_run`` fixture, tests/e2e_run.py: interrupted,
+then resumed through cluster-generic), built while the SLURM run idles between its status checks, so the
+suite builds the session's results twice, not three times.
+Checks: every job but the local ``all`` target went through sbatch and sacct (from the accounting database)
+lists it COMPLETED in partition ``cpu`` with its rule in the job comment; the SLURM run finished the same jobs
+as the local one; its metrics equal the local run's within the pipeline's run-to-run noise (:data:`TOLERANCES`).
 
 Skips (with the reason) when the plugin is not installed or this machine cannot host the cluster (not root,
 or SLURM not installed); a cluster that is installed but does not come up fails.
@@ -26,7 +28,8 @@ import yaml
 
 from rigbuild.io.metrics import flatten_metrics
 from rigbuild.paths import PROJECT_ROOT
-from test_workflow_e2e import _config, _env, out_of_bounds
+from e2e_run import e2e_config, finished_rules, job_env
+from test_workflow_e2e import out_of_bounds
 
 SNAKEMAKE = str(Path(sys.executable).with_name("snakemake"))
 CLUSTER = PROJECT_ROOT / "tests" / "cluster"
@@ -65,26 +68,26 @@ def _cmd(tmp: Path, *extra: str) -> list[str]:
 
 
 @pytest.fixture(scope="module")
-def runs(cluster, tmp_path_factory):
-    out = {}
-    procs = {}
-    for name in ("local", "slurm"):
-        tmp = tmp_path_factory.mktemp(name)
-        (tmp / "config.yaml").write_text(yaml.safe_dump(_config(tmp)))
-        extra = ["--cores", "2"] if name == "local" else [
-            "--profile", str(PROFILE), "--jobs", "2",
-            # the plugin's default first status check is 40 s after each finish: fine on a farm, most of
-            # the run time on 40 short jobs
-            "--slurm-init-seconds-before-status-checks", "2"]
-        log = open(tmp / "run.log", "w")
-        procs[name] = (subprocess.Popen(_cmd(tmp, *extra), stdout=log, stderr=subprocess.STDOUT, cwd=tmp,
-                                        env=_env()), log, tmp)
-    for name, (proc, log, tmp) in procs.items():
-        rc = proc.wait(timeout=3000)
-        log.close()
-        out[name] = {"rc": rc, "tmp": tmp, "log": (tmp / "run.log").read_text(),
-                     "results": tmp / "results" / "e2e"}
-    return out
+def runs(cluster, tmp_path_factory, request):
+    """The SLURM run of the e2e session, and as the local run the e2e tests' own run of it (``e2e_run``:
+    interrupted, then resumed through cluster-generic), built while the SLURM run waits on its status checks."""
+    tmp = tmp_path_factory.mktemp("slurm")
+    (tmp / "config.yaml").write_text(yaml.safe_dump(e2e_config(tmp)))
+    # the plugin's default first status check is 40 s after each finish: fine on a farm, most of the run
+    # time on 40 short jobs
+    cmd = _cmd(tmp, "--profile", str(PROFILE), "--jobs", "2", "--slurm-init-seconds-before-status-checks", "2")
+    with open(tmp / "run.log", "w") as log:
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=tmp, env=job_env())
+        try:
+            local = request.getfixturevalue("e2e_run")
+            rc = proc.wait(timeout=3000)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    r2 = local["run2"]
+    return {"slurm": {"rc": rc, "tmp": tmp, "log": (tmp / "run.log").read_text(), "results": tmp / "results" / "e2e"},
+            "local": {"rc": r2.returncode, "tmp": local["tmp"], "log": local["run1_log"] + r2.stdout + r2.stderr,
+                      "results": local["results"]}}
 
 
 def _sacct(ids: list[str]) -> list[dict]:
@@ -112,8 +115,8 @@ def test_every_job_went_through_sbatch_and_sacct_lists_it(runs):
     submitted = re.findall(r"Job (\d+) has been submitted with SLURM jobid (\d+)", log)
     rules = _rules_run(log)
     assert len(submitted) == len(rules) > 20, (len(submitted), len(rules))
-    # the SLURM run ran the same jobs as the local one
-    assert sorted(rules) == sorted(_rules_run(runs["local"]["log"]))
+    # the SLURM run ran the same jobs as the local one (before and after its interruption)
+    assert finished_rules(log) == finished_rules(runs["local"]["log"]) == sorted(rules)
     rows = _sacct([sid for _, sid in submitted])
     assert len(rows) == len(submitted), rows
     assert {r["State"] for r in rows} == {"COMPLETED"}, [r for r in rows if r["State"] != "COMPLETED"]

@@ -12,87 +12,15 @@ One run serves three acceptance checks of the end-to-end issue:
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import signal
 import subprocess
-import sys
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from dry_run import planned_jobs
+from e2e_run import job_env, snakemake_cmd
 from rigbuild.io.metrics import flatten_metrics
-from rigbuild.paths import PROJECT_ROOT
-
-SNAKEMAKE = str(Path(sys.executable).with_name("snakemake"))
-SUBMIT = str(PROJECT_ROOT / "workflow" / "profiles" / "local-cluster" / "submit.sh")
-
-
-def _config(tmp: Path) -> dict:
-    base = yaml.safe_load((PROJECT_ROOT / "config" / "config.yaml").read_text())
-    return {
-        "sessions": {"e2e": {"path": str(tmp / "sessions" / "e2e"), "synthetic": {
-            # the demo session's rig and cameras (config/config.yaml), fewer poses, frames and seconds
-            **base["sessions"]["demo"]["synthetic"],
-            "calib_poses": 12,
-            "rom": {"n_sequences": 2, "frames_per_sequence": 5, "coverage": 1},
-            "performance": {"n": 1, "duration_s": 3.0, "fps": 30.0, "noise_mm": 0.1, "gap_fraction": 0.01},
-        }}},
-        "characters": {"template": {"rig": "procedural", "kind": "template"}},
-        "params": base["params"],
-    }
-
-
-def _cmd(tmp: Path, *extra: str) -> list[str]:
-    return [SNAKEMAKE, "--snakefile", str(PROJECT_ROOT / "Snakefile"), "--directory", str(tmp),
-            "--configfile", str(tmp / "config.yaml"), "--cores", "2", *extra]
-
-
-def _env() -> dict:
-    return {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
-
-
-@pytest.fixture(scope="module")
-def e2e_run(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("e2e")
-    (tmp / "config.yaml").write_text(yaml.safe_dump(_config(tmp)))
-    results = tmp / "results" / "e2e"
-    # 1. start, and interrupt while the reconstruction runs
-    log1 = open(tmp / "run1.log", "w")
-    # a shell starting pytest in the background makes it ignore SIGINT, and children inherit that:
-    # give snakemake the default disposition back so Ctrl-C reaches it however the suite was started
-    proc = subprocess.Popen(_cmd(tmp), stdout=log1, stderr=subprocess.STDOUT, env=_env(), start_new_session=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    deadline = time.time() + 900
-    interrupted = False
-    while time.time() < deadline and proc.poll() is None:
-        if (results / "calib" / "cameras.json").exists() and any((tmp / "logs" / "e2e").glob("reconstruct*/**/*.log")):
-            # Ctrl-C; snakemake swallows a SIGINT that lands while it writes a log line, so press again
-            # (as a user would) until it stops
-            for _ in range(10):
-                os.killpg(proc.pid, signal.SIGINT)
-                interrupted = True
-                try:
-                    proc.wait(timeout=10)
-                    break
-                except subprocess.TimeoutExpired:
-                    continue
-            break
-        time.sleep(1)
-    proc.wait(timeout=300)
-    log1.close()
-    first = {p: p.stat().st_mtime_ns for p in (results / "calib").glob("*") if p.is_file()}
-    locks = list((tmp / ".snakemake" / "locks").glob("*")) if (tmp / ".snakemake" / "locks").exists() else []
-    # 2. resume through the cluster-generic executor (each job a separate process)
-    r2 = subprocess.run(_cmd(tmp, "--executor", "cluster-generic", "--cluster-generic-submit-cmd", SUBMIT,
-                             "--jobs", "2", "--latency-wait", "10"),
-                        capture_output=True, text=True, env=_env(), cwd=tmp, timeout=3000)
-    return {"tmp": tmp, "results": results, "interrupted": interrupted, "first_calib": first, "locks": locks,
-            "run2": r2, "run1_log": (tmp / "run1.log").read_text()}
 
 
 def test_interrupted_run_resumes_without_redoing_finished_jobs(e2e_run):
@@ -137,7 +65,7 @@ def test_every_file_written_is_a_declared_output(e2e_run):
     """No job writes a file its rule does not declare: every file under results/ is an output listed by
     `snakemake --summary`, a file inside a declared directory output, or a rule's benchmark record."""
     tmp = e2e_run["tmp"]
-    r = subprocess.run(_cmd(tmp, "--summary"), capture_output=True, text=True, env=_env(), cwd=tmp, timeout=600)
+    r = subprocess.run(snakemake_cmd(tmp, "--summary"), capture_output=True, text=True, env=job_env(), cwd=tmp, timeout=600)
     assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
     declared = {line.split("\t")[0] for line in r.stdout.splitlines()[1:] if line.strip()}
     dirs = [d for d in declared if (tmp / d).is_dir()]
@@ -215,7 +143,7 @@ def test_a_new_personalized_rig_reruns_what_reads_it_and_only_that(e2e_run):
     the template-rig solve and every other Ribera and Seol method stay done. (Touching rig.npz by hand re-plans
     nothing in Snakemake 9: a rule's output is judged by whether its job reruns, not by its mtime.)"""
     tmp = e2e_run["tmp"]
-    r = subprocess.run(_cmd(tmp, "-n", "--forcerun", "personalize"), capture_output=True, text=True, env=_env(),
+    r = subprocess.run(snakemake_cmd(tmp, "-n", "--forcerun", "personalize"), capture_output=True, text=True, env=job_env(),
                        cwd=tmp, timeout=600)
     assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
     jobs = planned_jobs(r.stdout + r.stderr)
