@@ -221,20 +221,13 @@ void main() {
         // a dot covers this fragment only within radius + fw / 2 of its centre, and the fragment lies within
         // fw / 2 of its triangle (the pixel centre of a partly covered pixel): the candidates hold every such
         // dot while fw < dot_margin; else (grazing triangles, too many candidates) all dots are tried
-        if (v_dots.x == -2 || fw >= dot_margin) {
-            for (int i = 0; i < n_dots; i++) {
-                vec4 d = texelFetch(dots, ivec2(i, 0), 0);
-                float ci = clamp((d.w - length(v_pos - d.xyz)) / fw + 0.5, 0.0, 1.0);
-                if (ci > cover) { cover = ci; which = i; }
-            }
-        } else {
-            for (int k = 0; k < 4; k++) {
-                int i = v_dots[k];
-                if (i < 0) break;
-                vec4 d = texelFetch(dots, ivec2(i, 0), 0);
-                float ci = clamp((d.w - length(v_pos - d.xyz)) / fw + 0.5, 0.0, 1.0);
-                if (ci > cover) { cover = ci; which = i; }
-            }
+        bool every = v_dots.x == -2 || fw >= dot_margin;
+        for (int k = 0; k < (every ? n_dots : 4); k++) {
+            int i = every ? k : v_dots[k];
+            if (i < 0) break;
+            vec4 d = texelFetch(dots, ivec2(i, 0), 0);
+            float ci = clamp((d.w - length(v_pos - d.xyz)) / fw + 0.5, 0.0, 1.0);
+            if (ci > cover) { cover = ci; which = i; }
         }
         a = mix(a, texelFetch(dots, ivec2(which, 1), 0).rgb, cover);
         if (dot_mat.x >= 0.0) fr.x = mix(fr.x, dot_mat.x, cover);

@@ -165,14 +165,9 @@ class _BackgroundWriter:
             self._pool.shutdown(wait=True)
 
     def wait(self) -> None:
-        try:
-            while self._pending:
-                self._pending.pop(0).result()
-        except BaseException:
-            for f in self._pending:
-                f.cancel()
-            self._pending.clear()
-            raise
+        while self._pending:
+            self._pending[0].result()
+            self._pending.pop(0)
 
 
 def generate_session(out_dir: str | os.PathLike, name: str, synthetic: dict | None,
