@@ -1,7 +1,7 @@
 # EM blendshape personalization (Ma et al. 2016, sections 3-4).
 # Needs from common.smk: config["params"]["personalize"], session_spec(session), results(session, ...).
 # Needs from the track rules: results/{session}/track/{sequence}/vertices.npz (vertices F x V x 3 mm,
-# confidence F x V) for every ROM sequence. Ground-truth evaluation: rules/eval_personalize.smk.
+# confidence F x V) for every ROM sequence. Ground-truth evaluation: rule eval_personalize (rules/eval.smk).
 from rigbuild.io.rigs import resolve_rig_spec, rig_source_files
 from rigbuild.personalize.params import from_config as _personalize_from_config
 

@@ -137,7 +137,7 @@ def session_tracking_metrics(summaries: dict[str, dict]) -> dict:
     return out
 
 
-def _truth_frames(gt_dir, sequence: str, frame_ids) -> np.ndarray:
+def truth_frames(gt_dir, sequence: str, frame_ids) -> np.ndarray:
     """Ground-truth vertices (F, V, 3) mm of ``frame_ids`` of ``ground_truth/rom/<sequence>.npz``."""
     from pathlib import Path
 
@@ -189,7 +189,7 @@ def ground_truth_tracking_metrics(gt_dir, cameras, faces: np.ndarray, face_verti
 
     sim = calibrated_to_ground_truth(gt_dir, cameras)
     neutral_gt = points_to_ground_truth(np.asarray(neutral, np.float64), sim)
-    truth_neutral = _truth_frames(gt_dir, neutral_at[0], [neutral_at[1]])[0]
+    truth_neutral = truth_frames(gt_dir, neutral_at[0], [neutral_at[1]])[0]
     face_vertices = np.asarray(face_vertices, np.int64)
     observed = observed_face_vertices(truth_neutral, faces, read_cameras(Path(gt_dir) / "cameras.json"),
                                       face_vertices, min_cameras)
@@ -204,7 +204,7 @@ def ground_truth_tracking_metrics(gt_dir, cameras, faces: np.ndarray, face_verti
     region_errors = {k: [] for k in regions}
     for name, (V, frame_ids) in sequences.items():
         tracked = points_to_ground_truth(np.asarray(V, np.float64), sim)
-        truth = _truth_frames(gt_dir, name, frame_ids)
+        truth = truth_frames(gt_dir, name, frame_ids)
         summaries[name] = tracking_summary(tracked, truth, faces, face_vertices, neutral_gt, truth_neutral)
         visible_summaries[name] = tracking_summary(tracked, truth, faces, observed, neutral_gt, truth_neutral)
         for k, ids in regions.items():

@@ -46,7 +46,9 @@ class PersonalizationResult:
     (``sqrt(sum M^2 d^2 / sum M^2)``, mm; the plain RMS when every confidence is 1);
     residual_initial_unweighted_mm / residual_final_unweighted_mm: the plain RMS over the confident
     vertices (vertices the tracker trusts little count fully); shape_scales (K,): the amplitude
-    factor the ``rom_peak`` gauge applied to each shape (ones for ``gauge="none"``)."""
+    factor the ``rom_peak`` gauge applied to each shape (ones for ``gauge="none"``); initial_weights (F, K),
+    initial_rotations (F, 3, 3), initial_translations (F, 3): the first weights step's fit with the D* rig
+    (``neutral`` of the input, D* before any gauge; NaN for skipped frames), the fit the residual_initial_* are of."""
 
     neutral: np.ndarray
     deltas: np.ndarray
@@ -64,6 +66,9 @@ class PersonalizationResult:
     timings: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     shape_scales: np.ndarray | None = None
+    initial_weights: np.ndarray | None = None
+    initial_rotations: np.ndarray | None = None
+    initial_translations: np.ndarray | None = None
 
 
 # ---------------------------------------------------------------------------- checks
@@ -423,6 +428,7 @@ class EMRun:
         self.shapes: ShapeUpdate | None = None
         self.scales = np.ones(K)
         self.t_w = self.t_s = self.t_setup = 0.0
+        self.initial_fit: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def set_rig(self) -> None:
         self.fit.set_rig(self.b0_a + self.X[0], self.Ds_a + self.X[1:])
@@ -507,12 +513,10 @@ class EMRun:
             deltas_out *= final[:, None, None]
             W = W / final[None, :]
             scales = scales * final
-        W_out = W.copy()
-        W_out[~kept] = np.nan
-        R_out = self.R.copy()
-        t_out = self.t.copy()
-        R_out[~kept] = np.nan
-        t_out[~kept] = np.nan
+        W_out, R_out, t_out = (np.where(kept.reshape(-1, *[1] * (a.ndim - 1)), a, np.nan)
+                               for a in (W, self.R, self.t))
+        W0, R0, t0 = (np.where(kept.reshape(-1, *[1] * (a.ndim - 1)), a, np.nan)
+                      for a in (self.initial_fit or (self.W, self.R, self.t)))
         qp = np.asarray(self.fit.qp_times)
         objective = self.objective
         return PersonalizationResult(
@@ -535,6 +539,9 @@ class EMRun:
                      "system_nnz": self.shapes.nnz},
             warnings=msgs,
             shape_scales=scales,
+            initial_weights=W0,
+            initial_rotations=R0,
+            initial_translations=t0,
         )
 
 
@@ -606,6 +613,7 @@ def personalize(
     if initial_weights is None or initial_rigid is None:
         em.sweep(warm_start=initial_weights is None)
     J = em.record(0, "weights")
+    em.initial_fit = (em.W.copy(), em.R.copy(), em.t.copy())
     residual_initial = em.objective[-1]["rms_mm"]
     residual_initial_unweighted = em.objective[-1]["rms_unweighted_mm"]
     if p.gauge == "rom_peak":

@@ -153,26 +153,35 @@ def _column(data: Mapping[str, dict], names: list[str], of) -> np.ndarray:
     return np.concatenate([of(s) for s in names])
 
 
-def write_fit_arrays(out: Path, data: Mapping[str, dict], fit_names: list[str], held: list[str], Dstar: np.ndarray,
-                     res: PersonalizationResult, ho: dict, region: np.ndarray | None, shape_names: list[str]) -> None:
+def write_fit_arrays(out: Path, data: Mapping[str, dict], fit_names: list[str], held: list[str], b0: np.ndarray,
+                     Dstar: np.ndarray, res: PersonalizationResult, ho: dict, region: np.ndarray | None,
+                     shape_names: list[str]) -> None:
     """``weights.npz``: per fitting frame weights (F, K), rotation, translation (float32), sequence, frame
     (session frame number), kept, shape_names, and with held-out sequences heldout_weights, heldout_rotation,
-    heldout_translation, heldout_sequence, heldout_frame. ``fit.npz``: the fit at full precision (float64):
-    initial_deltas (D*, K x V x 3 mm), deltas (K, V, 3) mm, weights (F, K), heldout_weights (H, K), and
-    fit_vertices (R,), the vertices the fit was restricted to (absent when every vertex was fitted)."""
+    heldout_translation, heldout_sequence, heldout_frame. ``fit.npz``: the fit at full precision (float64), in
+    the cameras' world: the two rigs, initial_neutral (b0, V x 3 mm) + initial_deltas (D*, K x V x 3 mm) and
+    neutral (V, 3) + deltas (K, V, 3) mm; each rig's fit of the fitting frames, initial_weights (F, K),
+    initial_rotations (F, 3, 3), initial_translations (F, 3) mm (the EM's first weights step) and weights,
+    rotations, translations (the personalized rig); with held-out sequences the same solve with each rig,
+    heldout_initial_{weights,rotations,translations} and heldout_{weights,rotations,translations} (H rows);
+    and fit_vertices (R,), the vertices the fit was restricted to (absent when every vertex was fitted)."""
     seq_col = _column(data, fit_names, lambda s: np.full(data[s]["vertices"].shape[0], s))
     frame_col = _column(data, fit_names, lambda s: frame_numbers(data[s]))
     arrays = dict(weights=res.weights.astype(np.float32), rotation=res.rotations.astype(np.float32),
                   translation=res.translations.astype(np.float32), sequence=seq_col, frame=frame_col,
                   kept=res.kept, shape_names=np.asarray(shape_names))
-    fit = dict(initial_deltas=Dstar, deltas=res.deltas, weights=res.weights)
+    fit = dict(initial_neutral=b0, initial_deltas=Dstar, neutral=res.neutral, deltas=res.deltas,
+               initial_weights=res.initial_weights, initial_rotations=res.initial_rotations,
+               initial_translations=res.initial_translations, weights=res.weights, rotations=res.rotations,
+               translations=res.translations)
     if held:
         arrays.update(heldout_weights=ho["final"]["weights"].astype(np.float32),
                       heldout_rotation=ho["final"]["rotations"].astype(np.float32),
                       heldout_translation=ho["final"]["translations"].astype(np.float32),
                       heldout_sequence=_column(data, held, lambda s: np.full(data[s]["vertices"].shape[0], s)),
                       heldout_frame=_column(data, held, lambda s: frame_numbers(data[s])))
-        fit.update(heldout_weights=ho["final"]["weights"])
+        fit.update({f"heldout_{pre}{k}": ho[which][k] for pre, which in (("", "final"), ("initial_", "initial"))
+                    for k in ("weights", "rotations", "translations")})
     if region is not None:
         fit.update(fit_vertices=np.asarray(region, dtype=np.int64))
     save_npz(out / "weights.npz", **arrays)
@@ -265,7 +274,7 @@ def run_personalization(
     export_rigs(out, rig, initial, template, cfg.export)
 
     ho = fit_held_out(data, held, b0, Dstar, res, region, template.n_vertices, cfg, neutral_frames)
-    write_fit_arrays(out, data, fit_names, held, Dstar, res, ho, region, template.shape_names)
+    write_fit_arrays(out, data, fit_names, held, b0, Dstar, res, ho, region, template.shape_names)
     write_json(out / "objective.json", {"objective": res.objective, "timings": res.timings,
                                          "n_free_variables": res.n_free_variables, "warnings": res.warnings,
                                          "params": dataclasses.asdict(cfg.em), "fit_sequences": fit_names,
