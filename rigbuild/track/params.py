@@ -131,6 +131,9 @@ class RegistrationParams:
         matched one to one (within ``stencil_gate_mm`` of the current mesh) to a stencil site (a painted dot
         vertex of the template) pulls that vertex with this weight: the hand paints near the site, so the
         stencil is a prior, weighted below the unlabeled-dot term; 0 = no prior.
+    dot_surface_points : ``dots`` level only: each detected dot on the skin is tracked from its own closest point
+        on the registered neutral (within the last gate) instead of from its stencil vertex, as the ``landmarks``
+        level always does; for a ``dot_weight`` low enough that the registration does not pin each vertex to its dot.
     """
 
     ray_labels_are_dots: bool = True
@@ -152,6 +155,7 @@ class RegistrationParams:
     stencil_prior_weight: float = 0.0
     feature_dot_weight: float = 1.0  # chosen on bench_track's registration scene (ICT actor seed 5, sigma 2 mm)
     stencil_gate_mm: float = 6.0
+    dot_surface_points: bool = False
 
 
 #: the neutral registration's coarse levels (:class:`RegistrationParams` ``coarse``)

@@ -92,9 +92,9 @@ class NeutralRegistration:
     scan_rms_mm: float  # point-to-plane RMS of the face region to the scan
     dot_rms_mm: float
     history: list[dict] = field(default_factory=list)
-    #: the ``landmarks`` coarse level: every detected dot within the last gate of the registered neutral gets its
-    #: own surface location: (K, 3) template vertex ids of its triangle, (K, 3) barycentrics, (K,) dot index;
-    #: else None
+    #: the ``landmarks`` coarse level and the ``dots`` level with ``dot_surface_points``: every detected dot within
+    #: the last gate of the registered neutral gets its own surface location: (K, 3) template vertex ids of its
+    #: triangle, (K, 3) barycentrics, (K,) dot index; else None
     dot_surface: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
@@ -579,7 +579,22 @@ def register_neutral(
         vertices=full, markers=full[template.marker_vertices], similarity=(s, R, t), dot_labels=labels,
         scan_rms_mm=_scan_rms(p, mesh, tree, scan_points, scan_normals, params),
         dot_rms_mm=_dot_rms(p, mk_local, terms), history=history,
+        dot_surface=dot_surface_points(p, mesh, dots, params.gate_schedule_mm[1]) if params.dot_surface_points
+        else None,
     )
+
+
+def dot_surface_points(p: np.ndarray, mesh: TrackingMesh, dots: np.ndarray, gate_mm: float
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each detected dot's own point on the registered neutral: the closest surface point of ``p`` (T, 3) mm (the
+    tracking mesh) to each of ``dots`` (D, 3) mm, kept within ``gate_mm`` (dots on the skin, not on hair, the
+    background or the eyes). Returns (K, 3) template vertex ids of its triangle, (K, 3) barycentrics, (K,) dot
+    indices (:attr:`NeutralRegistration.dot_surface`)."""
+    from rigbuild.track.matches import closest_surface_points
+
+    tri, bary, dist = closest_surface_points(np.asarray(dots, np.float64).reshape(-1, 3), p, mesh.faces)
+    on = np.flatnonzero(dist <= gate_mm)
+    return mesh.vertex_ids[mesh.faces[tri[on]]], bary[on], on
 
 
 def _scan_rms(p: np.ndarray, mesh: TrackingMesh, tree: cKDTree, scan_points: np.ndarray, scan_normals: np.ndarray,
@@ -629,11 +644,9 @@ def _register_from_landmarks(template: Rig, scan_points: np.ndarray, scan_normal
     full = mesh.to_full(p, aligned_full)
     at_dots = np.where((mk_local >= 0)[:, None], p[np.maximum(mk_local, 0)], np.nan)
     labels = relabel_dots(at_dots, dots, params.relabel_gate_mm)  # read off the mesh, for the sequence tracker
-    tri, bary, dist = closest_surface_points(dots, p, mesh.faces)
-    on = np.flatnonzero(dist <= params.gate_schedule_mm[1])  # dots on the skin (not hair, background, eyes)
     return NeutralRegistration(
         vertices=full, markers=full[template.marker_vertices], similarity=(s, R, t), dot_labels=labels,
         scan_rms_mm=_scan_rms(p, mesh, tree, scan_points, scan_normals, params),
         dot_rms_mm=_dot_rms(p, mk_local, terms, mesh.faces), history=history,
-        dot_surface=(mesh.vertex_ids[mesh.faces[tri[on]]], bary[on], on),
+        dot_surface=dot_surface_points(p, mesh, dots, params.gate_schedule_mm[1]),
     )

@@ -106,7 +106,8 @@ def run_track_neutral(session_dir: str | os.PathLike, cameras_path: str | os.Pat
 
     depth_dir : that sequence's depth folder; params : ``config["params"]["track"]``. Writes ``neutral.npz``
     (vertices, markers (mm), marker ids/names, similarity, dot labels, sequence, frame; with the ``landmarks``
-    coarse level each dot's surface point ``dot_surface_vertices`` / ``dot_surface_bary``) and the fragment
+    coarse level or ``registration.dot_surface_points`` each dot's surface point ``dot_surface_vertices`` /
+    ``dot_surface_bary``) and the fragment
     ``{"tracking": {neutral_scan_rms_mm, neutral_dot_rms_mm, neutral_dots_matched, neutral_seconds}}``."""
     from rigbuild.io.atomic import save_npz
     from rigbuild.io.metrics import write_metrics_fragment
@@ -264,8 +265,8 @@ def track_rom_sequence(template: Rig, neutral_vertices: np.ndarray, anchor_frame
     actor neutral; anchor_frames : the views of the global neutral frame; frames : per frame, its views;
     frame_ids : frame numbers; dot_vertices : (D,) template vertices of the painted dots (default the markers);
     dot_surface : (vertex ids (D', 3), bary (D', 3)) each detected dot's own surface point on the registered
-    neutral (``neutral.npz``'s ``dot_surface_*``, from the ``landmarks`` coarse level): the dots are tracked
-    from there instead of from ``dot_vertices``.
+    neutral (``neutral.npz``'s ``dot_surface_*``: the ``landmarks`` coarse level, or ``dot_surface_points``): the
+    dots are tracked from there instead of from ``dot_vertices``.
     Returns vertices (F, V, 3) float32 mm (full topology), confidence (F, V)
     float32, markers (F, M, 3) mm (lost frames are flagged in stats, not NaN here; :func:`run_track_sequence`
     writes them as gaps),
