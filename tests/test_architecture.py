@@ -136,6 +136,13 @@ def test_tier_configs_plan_their_own_session_only(configfile, session, tmp_path)
     assert "synth_session_demo" not in r.out and "results/demo" not in r.out
 
 
+def test_the_demo_dev_config_plans_its_own_session_only(tmp_path):
+    r = _dry_run(str(PROJECT_ROOT / "config" / "demo-dev.yaml"), tmp_path)
+    assert r.returncode == 0, r.out[-3000:]
+    assert "synth_session_demo_dev" in r.out and "results/demo_dev/" in r.out
+    assert "results/demo/" not in r.out and "sessions/demo/" not in r.out
+
+
 @pytest.mark.parametrize("block,typo,suggestion", [
     ({"track": {"lam_flw": 1.0}}, "params.track.lam_flw", "lam_flow"),
     ({"reconstruct": {"min_view": 2}}, "params.reconstruct.min_view", "min_views"),
