@@ -262,19 +262,25 @@ def test_pose_rig_of_the_true_fit_reproduces_the_frames():
 
 
 def test_expression_error_metrics_on_an_exact_case():
-    """A 1-vertex rig: the D* rig's fit is off by 2 mm, the personalized one's by 0.5 mm (one frame skipped)."""
+    """1-vertex rigs: the D* rig's fit is off by 2 mm; the personalized rig (another neutral, twice the shape) by
+    0.5 mm on one frame; the third frame was skipped by both fits. Each fit goes with its own rig."""
     from rigbuild.eval.personalization import expression_error_metrics
 
-    b = np.zeros((1, 3))
-    D = np.array([[[1.0, 0.0, 0.0]]])
+    b0, D0 = np.zeros((1, 3)), np.array([[[1.0, 0.0, 0.0]]])
+    b1, D1 = np.array([[0.0, 1.0, 0.0]]), 2.0 * D0
     eye = np.repeat(np.eye(3)[None], 3, 0)
     truth = np.array([[[1.0, 0, 0]], [[0.0, 0, 0]], [[5.0, 0, 0]]])
     fit0 = (np.array([[1.0], [0.0], [np.nan]]), eye, np.array([[0, 2.0, 0], [0, 0, 2.0], [0, 0, 0]]))
-    fit1 = (np.array([[1.0], [0.5], [np.nan]]), eye, np.zeros((3, 3)))
-    m = expression_error_metrics((b, D), (b, D), fit0, fit1, truth, prefix="heldout_")
+    fit1 = (np.array([[0.5], [0.25], [np.nan]]), eye, np.array([[0, -1.0, 0], [0, -1.0, 0], [0, 0, 0]]))
+    m = expression_error_metrics((b0, D0), (b1, D1), fit0, fit1, truth, prefix="heldout_")
     assert m["heldout_expression_error_initial_mm"] == pytest.approx(2.0)
     assert m["heldout_expression_error_final_mm"] == pytest.approx(0.25)
     assert m["heldout_expression_error_reduction"] == pytest.approx(0.875)
+    # a similarity into the ground-truth world (x_gt = 2 x + (1, 0, 0)) applies to the posed meshes
+    moved = expression_error_metrics((b0, D0), (b1, D1), fit0, fit1, 2.0 * truth + [1.0, 0, 0],
+                                     similarity=(2.0, np.eye(3), np.array([1.0, 0, 0])))
+    assert moved["expression_error_initial_mm"] == pytest.approx(4.0)
+    assert moved["expression_error_final_mm"] == pytest.approx(0.5)
 
 
 def test_pinned_neutral_frames_keep_zero_weights_and_fit_the_rigid_motion():

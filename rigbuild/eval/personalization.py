@@ -11,7 +11,8 @@ them as ``*_raw``:
 
 - ``expression_error_reduction`` / ``heldout_expression_error_reduction`` (the headline): each rig posed by its
   own fit, ``R_i (b_0 + D w_i) + t_i``, against the ground-truth mesh of the frame: ``1 - e / e*`` of the
-  mean vertex distance (mm, unweighted, over the fitted region: the template's face mask) of the personalized
+  mean vertex distance (mm, unweighted, over the fitted region: the template's face mask with the default
+  ``fit_region: face``, every vertex with ``all``) of the personalized
   rig (e) and the D* rig (e*), on the fitting frames and on the held-out frames (the same weight solve with each
   rig); ``*_initial_mm`` / ``*_final_mm`` beside them;
 - ``residual_reduction``: ``1 - rms_personalized / rms_initial`` of the fit residual on the fitting
@@ -26,7 +27,7 @@ them as ``*_raw``:
   personalized rig's factors is ``shape_scale_p10`` / ``_median`` / ``_p90``); ``shape_error_reduction_raw``
   without the factors;
 - ``weight_mae``: mean |w / a - w_gt| over all fitting frames and shapes (the weights in the gauge of the
-  scaled shapes); ``weight_mae_raw``: mean |w - w_gt|;
+  scaled shapes; a shape whose factor is not positive is left out); ``weight_mae_raw``: mean |w - w_gt|;
 - ``min_shape_cosine``: min over shapes of the cosine between the personalized and the ground-truth
   displacement field on the face region (scale-free).
 """
@@ -99,6 +100,7 @@ def personalization_metrics(
     e1g = rms_shape_error(a1[:, None, None] * deltas, gt_deltas, face_vertices)
     cos = shape_cosines(deltas, gt_deltas, face_vertices)
     cos0 = shape_cosines(initial_deltas, gt_deltas, face_vertices)
+    a_w = np.where(a1 > 1e-9, a1, np.nan)  # a shape pointing away from its truth has no weight gauge: left out
     out = {
         "residual_initial_mm": residual_initial_mm,
         "residual_final_mm": residual_final_mm,
@@ -112,7 +114,7 @@ def personalization_metrics(
         "shape_scale_p10": float(np.percentile(a1, 10)),
         "shape_scale_median": float(np.median(a1)),
         "shape_scale_p90": float(np.percentile(a1, 90)),
-        "weight_mae": weight_mae(np.asarray(weights) / a1[None, :], gt_weights),
+        "weight_mae": weight_mae(np.asarray(weights) / a_w[None, :], gt_weights),
         "weight_mae_raw": weight_mae(weights, gt_weights),
         "min_shape_cosine": float(cos.min()),
         "min_shape_cosine_initial": float(cos0.min()),
@@ -124,7 +126,7 @@ def personalization_metrics(
         out["heldout_residual_reduction"] = (1.0 - heldout_residual_final_mm / heldout_residual_initial_mm
                                              if heldout_residual_initial_mm > 0 else 0.0)
     if heldout_weights is not None and heldout_gt_weights is not None:
-        out["heldout_weight_mae"] = weight_mae(np.asarray(heldout_weights) / a1[None, :], heldout_gt_weights)
+        out["heldout_weight_mae"] = weight_mae(np.asarray(heldout_weights) / a_w[None, :], heldout_gt_weights)
         out["heldout_weight_mae_raw"] = weight_mae(heldout_weights, heldout_gt_weights)
     return out
 
