@@ -134,10 +134,10 @@ def personalization_metrics(
 def mean_expression_error(posed: np.ndarray, truth: np.ndarray) -> float:
     """Mean vertex distance (mm) between posed rig meshes and ground-truth meshes, both (F, R, 3) in one world,
     over the frames whose pose is finite (NaN rows: frames the fit skipped)."""
+    from rigbuild.eval.tracking import vertex_errors
+
     ok = np.isfinite(posed).all(axis=(1, 2))
-    if not ok.any():
-        return float("nan")
-    return float(np.linalg.norm(posed[ok] - truth[ok], axis=2).mean())
+    return float(vertex_errors(posed[ok], truth[ok]).mean()) if ok.any() else float("nan")
 
 
 def expression_error_metrics(initial_rig: tuple, rig: tuple, initial_fit: tuple, fit: tuple, truth: np.ndarray,
@@ -259,11 +259,10 @@ def evaluate_personalization(gt_dir: str | os.PathLike, weights_npz: str | os.Pa
     m = ground_truth_metrics(gt_dir, shape_names, D0, D1, region, fit["weights"], seqs, frames,
                              fit["heldout_weights"] if held else None, heldout_seqs, heldout_frames)
     rigs = ((fit["initial_neutral"], fit["initial_deltas"]), (fit["neutral"], fit["deltas"]))
-    for prefix, pre, s, f in (("", "", seqs, frames), ("heldout_", "heldout_", heldout_seqs, heldout_frames)):
-        if prefix and not held:
-            continue
-        fits = tuple(tuple(fit[f"{pre}{which}{k}"] for k in ("weights", "rotations", "translations"))
-                     for which in ("initial_", ""))
+    frame_sets = [("", seqs, frames)] + ([("heldout_", heldout_seqs, heldout_frames)] if held else [])
+    for prefix, s, f in frame_sets:
+        fits = [tuple(fit[f"{prefix}{which}{k}"] for k in ("weights", "rotations", "translations"))
+                for which in ("initial_", "")]
         m.update(expression_error_metrics(*rigs, *fits, truth_meshes(gt_dir, s, f, region), region, sim, prefix))
     return m
 

@@ -513,10 +513,8 @@ class EMRun:
             deltas_out *= final[:, None, None]
             W = W / final[None, :]
             scales = scales * final
-        W_out, R_out, t_out = (np.where(kept.reshape(-1, *[1] * (a.ndim - 1)), a, np.nan)
-                               for a in (W, self.R, self.t))
-        W0, R0, t0 = (np.where(kept.reshape(-1, *[1] * (a.ndim - 1)), a, np.nan)
-                      for a in (self.initial_fit or (self.W, self.R, self.t)))
+        W_out, R_out, t_out = _nan_where_skipped(kept, W, self.R, self.t)
+        W0, R0, t0 = _nan_where_skipped(kept, *(self.initial_fit or (self.W, self.R, self.t)))
         qp = np.asarray(self.fit.qp_times)
         objective = self.objective
         return PersonalizationResult(
@@ -543,6 +541,11 @@ class EMRun:
             initial_rotations=R0,
             initial_translations=t0,
         )
+
+
+def _nan_where_skipped(kept: np.ndarray, *per_frame: np.ndarray) -> list[np.ndarray]:
+    """Copies of per-frame arrays (F, ...) with the rows of skipped frames (``~kept``, (F,) bool) set to NaN."""
+    return [np.where(kept.reshape(-1, *[1] * (a.ndim - 1)), a, np.nan) for a in per_frame]
 
 
 def personalize(
