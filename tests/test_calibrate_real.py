@@ -141,9 +141,20 @@ def test_pose2sim_focal_lengths_from_separate_checkerboard_photos(pose2sim_intri
 
 
 @pytest.mark.data
+def test_pose2sim_photos_pin_the_principal_points(pose2sim_intrinsics):
+    """The separate photos pin each principal point to a few px (one sigma, OpenCV's covariance; measured
+    1.6-2.3 px), so the 20-45 px gap to the Qualisys reference below is not noise of the fit: it has the same
+    sign in all four cameras (cx higher, cy lower), a disagreement between these photos and that reference."""
+    est, _, _ = pose2sim_intrinsics
+    for c, k in est.items():
+        assert np.all(np.isfinite(k.sd)) and np.max(k.sd[2:]) <= 3.0, (c, k.sd)
+
+
+@pytest.mark.data
 @pytest.mark.xfail(strict=True, reason="target not met: principal points 20-45 px from the Qualisys reference "
-                   "(cx +27.5 +20.9 +45.2 +19.8, cy -14.5 -26.9 -21.1 -28.7 px); 6-7 photos of a 4 x 7 board "
-                   "do not pin it to 10 px")
+                   "(cx +27.5 +20.9 +45.2 +19.8, cy -14.5 -26.9 -21.1 -28.7 px) while the photos pin them to "
+                   "1.6-2.3 px (one sigma): a systematic disagreement, not a fit that more iterations or another "
+                   "distortion model fixes (fix_k3 / fix_tangential move them by < 4 px)")
 def test_pose2sim_principal_points_from_separate_checkerboard_photos(pose2sim_intrinsics):
     """Issue 21 acceptance: principal points within 10 px of the Qualisys reference."""
     _, got, ref = pose2sim_intrinsics

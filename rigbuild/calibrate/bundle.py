@@ -68,6 +68,7 @@ class BundleResult:
     status: int
     message: str
     seconds: float
+    cam_sd: np.ndarray | None = None  # (C, 15) standard deviations of the camera unknowns (NaN = held)
 
 
 def project(cam_params: np.ndarray, board_params: np.ndarray, obs: Observations,
@@ -278,6 +279,28 @@ def _levenberg_marquardt(problem: _BundleProblem, full: np.ndarray, loss: str, f
     return full, initial_rms, status, message
 
 
+def parameter_sd(problem: _BundleProblem, full: np.ndarray, loss: str, f_scale_px: float) -> np.ndarray:
+    """(C, 15) standard deviations of the camera unknowns at the solution ``full`` (NaN = held or tied).
+
+    The Gauss-Newton covariance ``s^2 (J^T W J + P)^-1`` of the free unknowns, with ``W`` the robust weights,
+    ``P`` the prior terms and ``s^2 = sum(w |r|^2) / (2 n - free)`` the residual variance per coordinate
+    (OpenCV's ``calibrateCameraExtended`` convention). It says how well the board views pin each unknown
+    (for example a principal point from a few photos), not how far a biased model is from the truth.
+    """
+    r = problem.residuals(full)
+    _, w = robust_weights(np.sum(r ** 2, axis=1), loss, f_scale_px)
+    H, _ = problem.normal_equations(full, r, w)
+    H[np.diag_indices_from(H)] += problem.prior_terms(full)[2]
+    dof = max(2 * problem.n - problem.free.size, 1)
+    s2 = float(np.sum(w * np.sum(r ** 2, axis=1))) / dof
+    sd_full = np.full(full.size, np.nan)
+    try:
+        sd_full[problem.free] = np.sqrt(np.maximum(np.diag(np.linalg.inv(H)), 0.0) * s2)
+    except np.linalg.LinAlgError:  # a gauge left free: no finite covariance
+        pass
+    return sd_full[: problem.C * N_CAM].reshape(problem.C, N_CAM)
+
+
 def bundle_adjust(
     cam_params: np.ndarray,
     board_params: np.ndarray,
@@ -339,7 +362,8 @@ def bundle_adjust(
     problem = _BundleProblem(obs, board_points, C, V, free, tie, prior)
     full, initial_rms, status, message = _levenberg_marquardt(problem, full, loss, f_scale_px, max_iterations, tol)
     full = problem.expand(full)
+    cam_sd = parameter_sd(problem, full, loss, f_scale_px)
     cp, bp = problem.split(full)
     res = project(cp, bp, obs, board_points) - obs.uv
     return BundleResult(cp.copy(), bp.copy(), res, float(np.sqrt(np.mean(np.sum(res ** 2, axis=1)))),
-                        initial_rms, problem.nfev, status, message, time.perf_counter() - t0)
+                        initial_rms, problem.nfev, status, message, time.perf_counter() - t0, cam_sd)

@@ -10,7 +10,7 @@ poses come from ``cv2.solvePnP`` with the given K and distortion (:func:`board_p
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import os
@@ -33,6 +33,8 @@ class Intrinsics:
     R_views : (V, 3, 3), t_views : (V, 3) board-to-camera pose of each view (board units, mm);
     rms_px : RMS reprojection error over all corners (OpenCV's definition: sqrt(mean |du|^2));
     view_rms_px : (V,) per-view RMS.
+    sd : (4,) standard deviations of fx, fy, cx, cy, px (``cv2.calibrateCameraExtended``; 0 = held by a flag,
+        NaN = not estimated here).
     """
 
     K: np.ndarray
@@ -41,6 +43,7 @@ class Intrinsics:
     t_views: np.ndarray
     rms_px: float
     view_rms_px: np.ndarray
+    sd: np.ndarray = field(default_factory=lambda: np.full(4, np.nan))
 
 
 def calibration_flags(fix_k3: bool = False, zero_tangent: bool = False, fix_aspect: bool = False,
@@ -84,8 +87,8 @@ def calibrate_intrinsics(
     w, h = (int(s) for s in image_size)
     K0 = np.array([[1.0, 0, (w - 1) / 2], [0, 1.0, (h - 1) / 2], [0, 0, 1]])  # ratio 1, centre (fixed-flag starts)
     with opencv_threads(1):  # more threads: a different K on every call (rigbuild.determinism)
-        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, (w, h), K0, None,
-                                                        flags=flags, criteria=criteria or _CRITERIA)
+        rms, K, dist, rvecs, tvecs, sd_intr, _, _ = cv2.calibrateCameraExtended(
+            obj, img, (w, h), K0, None, flags=flags, criteria=criteria or _CRITERIA)
     R = np.stack([cv2.Rodrigues(r)[0] for r in rvecs])
     t = np.stack([np.asarray(tv, dtype=np.float64).reshape(3) for tv in tvecs])
     dist = np.asarray(dist, dtype=np.float64).reshape(-1)[:5]
@@ -93,7 +96,8 @@ def calibrate_intrinsics(
     for i, (o, p, r, tv) in enumerate(zip(obj, img, rvecs, tvecs)):
         proj = cv2.projectPoints(o, r, tv, K, dist)[0].reshape(-1, 2)
         view_rms[i] = np.sqrt(np.mean(np.sum((proj - p.reshape(-1, 2)) ** 2, axis=1)))
-    return Intrinsics(np.asarray(K, dtype=np.float64), np.pad(dist, (0, 5 - dist.size)), R, t, float(rms), view_rms)
+    return Intrinsics(np.asarray(K, dtype=np.float64), np.pad(dist, (0, 5 - dist.size)), R, t, float(rms), view_rms,
+                      np.asarray(sd_intr, dtype=np.float64).reshape(-1)[:4].copy())
 
 
 def board_poses(object_points: Sequence[np.ndarray], image_points: Sequence[np.ndarray], K: np.ndarray,

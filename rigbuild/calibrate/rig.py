@@ -60,6 +60,7 @@ class RigCalibration:
     flags: dict[str, list[str]] = field(default_factory=dict)  # camera id -> plausibility flags
     gate_failures: list[str] = field(default_factory=list)  # RMS / convergence gate messages (empty: pass)
     heldout: dict | None = None  # rigbuild.calibrate.heldout.heldout_errors of a fit without every n-th pose
+    known_sd: dict[str, np.ndarray] = field(default_factory=dict)  # camera id -> KnownIntrinsics.sd
 
     @property
     def status(self) -> str:
@@ -69,6 +70,18 @@ class RigCalibration:
     @property
     def rms_px(self) -> float:
         return float(np.sqrt(np.mean(np.sum(self.residuals ** 2, axis=1))))
+
+    def intrinsics_sd(self) -> dict[str, np.ndarray]:
+        """camera id -> (4,) standard deviations of fx, fy, cx, cy (px) of the delivered intrinsics: the bundle
+        adjustment's covariance, or for intrinsics held fixed their own fit's (NaN: given, or held)."""
+        out = {}
+        sd = self.bundle.cam_sd if self.bundle.cam_sd is not None else np.full((len(self.cameras), N_CAM), np.nan)
+        for i, cam in enumerate(self.cameras):
+            s = sd[i, FX:CY + 1]
+            if cam.id in self.known_sd and not np.isfinite(s).any():
+                s = self.known_sd[cam.id]
+            out[cam.id] = np.asarray(s, dtype=np.float64)
+        return out
 
     def corner_world(self, view: np.ndarray, corner: np.ndarray) -> np.ndarray:
         """World positions (N, 3) mm of board corners ``corner`` (N,) at board poses ``view`` (N,)."""
@@ -114,6 +127,7 @@ class RigCalibration:
         """Rows for ``reprojection_per_camera.csv``."""
         e = np.linalg.norm(self.residuals, axis=1)
         rows = []
+        sd = self.intrinsics_sd()
         for ci, cam in enumerate(self.cameras):
             m = self.obs.cam == ci
             rows.append({
@@ -123,6 +137,7 @@ class RigCalibration:
                 "initial_rms_px": self.initial_rms_px[cam.id],
                 "fx": cam.K[0, 0], "fy": cam.K[1, 1], "cx": cam.K[0, 2], "cy": cam.K[1, 2],
                 "k1": cam.dist[0], "k2": cam.dist[1], "p1": cam.dist[2], "p2": cam.dist[3], "k3": cam.dist[4],
+                "sd_fx": sd[cam.id][0], "sd_fy": sd[cam.id][1], "sd_cx": sd[cam.id][2], "sd_cy": sd[cam.id][3],
                 "intrinsics": self.intrinsics_source.get(cam.id, "rig"),
                 "flags": "; ".join(self.flags.get(cam.id, [])),
             })
@@ -156,12 +171,14 @@ def gather_observations(detections: Mapping[str, Mapping[str, Detection]], camer
 @dataclass
 class KnownIntrinsics:
     """Intrinsics of one camera known before the rig fit: given (session.yaml) or calibrated from that
-    camera's own images. K (3, 3) px, dist (5,), source ``given`` or ``images``, rms_px of their own fit."""
+    camera's own images. K (3, 3) px, dist (5,), source ``given`` or ``images``, rms_px of their own fit,
+    sd (4,) standard deviations of fx, fy, cx, cy px from that fit (NaN: given)."""
 
     K: np.ndarray
     dist: np.ndarray
     source: str
     rms_px: float = float("nan")
+    sd: np.ndarray = field(default_factory=lambda: np.full(4, np.nan))
 
 
 def _camera_intrinsics(detections, usable, pts, image_size, opt: CalibrationOptions,
@@ -282,9 +299,12 @@ def calibrate_rig(
         initial_rms_px={c: (known[c].rms_px if c in known else intr[c].rms_px) for c in cam_ids}, bundle=ba,
         graph=graph, seconds={"intrinsics": t1 - t0, "pose_graph": t2 - t1, "bundle": t3 - t2, "total": t3 - t0},
         intrinsics_source={c: known[c].source if c in known else "rig" for c in cam_ids},
+        known_sd={c: known[c].sd for c in known if opt.known_intrinsics == "fixed"},
     )
     result.flags = qa.plausibility_flags(cameras, {c.id: int(np.unique(obs.view[obs.cam == i]).size)
-                                                   for i, c in enumerate(cameras)}, opt.min_board_poses)
+                                                   for i, c in enumerate(cameras)}, opt.min_board_poses,
+                                         principal_point_sd={c: float(np.max(s[2:])) for c, s in
+                                                             result.intrinsics_sd().items()})
     result.gate_failures = [m for m in (qa.rms_message(result.camera_rms(), result.image_rms(), opt.max_rms_px),
                                         qa.convergence_message(ba, opt.max_iterations)) if m]
     if raise_gate and result.gate_failures:

@@ -88,7 +88,7 @@ def known_intrinsics(spec: SessionSpec, params: CalibrationOptions) -> dict[str,
         good = [d for d in dets.values() if is_usable(d, spec.board, params.min_corners)]
         intr = calibrate_intrinsics([pts[d.ids] for d in good], [d.corners for d in good], (spec.width, spec.height),
                                     flags=flags, camera=cam)
-        out[cam] = KnownIntrinsics(intr.K, intr.dist, "images", intr.rms_px)
+        out[cam] = KnownIntrinsics(intr.K, intr.dist, "images", intr.rms_px, intr.sd)
     return out
 
 
@@ -239,6 +239,10 @@ def _save_fig(fig, path) -> None:
     plt.close(fig)
 
 
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
 def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
     """The ``calibration`` block of the stage's metrics fragment (no ground truth)."""
     cam_rms = result.camera_rms()
@@ -258,6 +262,9 @@ def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
         "bundle_iterations_nfev": result.bundle.nfev,
         "bundle_converged": result.bundle.status in (1, 2),
         "intrinsics_source": dict(result.intrinsics_source),
+        "camera_principal_point_sd_px": {c: _finite_or_none(np.max(s[2:])) for c, s in result.intrinsics_sd().items()},
+        "camera_focal_sd_pct": {c.id: _finite_or_none(100 * np.max(result.intrinsics_sd()[c.id][:2]) / c.K[0, 0])
+                                for c in result.cameras},
         "n_plausibility_flags": sum(len(f) for f in result.flags.values()),
         "plausibility_flags": {c: "; ".join(f) for c, f in result.flags.items() if f},
         "seconds": result.seconds.get("total"),
