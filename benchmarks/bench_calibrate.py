@@ -157,7 +157,7 @@ def rendered_ict_tier(folder=None):
         t0 = time.perf_counter()
         render_s = render_calibration_session(folder, "ict", block)["seconds"]
         t_render = time.perf_counter() - t0
-    spec, res = calibrate_session(folder)
+    spec, res = calibrate_session(folder, workers=2)  # the rule's 2 threads
     truth = read_cameras(folder / "ground_truth" / "cameras.json")
     gt = np.load(folder / "ground_truth" / "board_poses.npz")
     # corner localisation: every observation the calibration used vs the true projection
@@ -191,7 +191,8 @@ def rendered_ict_tier(folder=None):
 
 
 def real_footage():
-    """Section 6: the sleap-anipose recording through calibrate_session, timed; None without the data."""
+    """Section 6: the sleap-anipose recording through calibrate_session (2 detection processes, as the rule
+    runs it), timed; None without the data."""
     import yaml
 
     from rigbuild.calibrate.params import from_config
@@ -202,7 +203,8 @@ def real_footage():
         return None
     params = yaml.safe_load((ROOT / "config" / "sleap-charuco.yaml").read_text())["params"]["calibrate"]
     t0, c0 = time.perf_counter(), time.process_time()
-    _, res = calibrate_session(ROOT / "config" / "calibration-only" / "sleap-charuco", from_config(params))
+    _, res = calibrate_session(ROOT / "config" / "calibration-only" / "sleap-charuco", from_config(params),
+                               workers=2)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     m = calibration_metrics(res)
     keep = ("status", "rms_px", "camera_rms_px", "heldout_reprojection_rms_px", "heldout_camera_rms_px",

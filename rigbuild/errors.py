@@ -18,6 +18,7 @@ class InputError(RigbuildError):
     """
 
     def __init__(self, message: str, path: str | None = None, fix: str | None = None):
+        self.message = message
         self.path = None if path is None else str(path)
         self.fix = fix
         text = message
@@ -26,6 +27,9 @@ class InputError(RigbuildError):
         if fix:
             text += f"\n  fix: {fix}"
         super().__init__(text)
+
+    def __reduce__(self):  # pickled whole (raised in a worker process, re-raised in the parent)
+        return type(self), (self.message, self.path, self.fix)
 
 
 class QualityGateError(RigbuildError):

@@ -30,7 +30,7 @@ rule calibrate:
         "logs/{session}/calib/calibrate.log",
     benchmark:
         "results/{session}/benchmarks/calibrate.tsv"
-    threads: 1
+    threads: 2  # board detection, one process per core
     resources:
         mem_mb=2000,
     conda:

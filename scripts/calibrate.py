@@ -13,7 +13,7 @@ def main(smk) -> None:
     from rigbuild.calibrate.stage import run_calibrate
 
     metrics = run_calibrate(Path(smk.input.session_yaml).parent, Path(smk.output.cameras).parent,
-                            smk.params.calibrate)
+                            smk.params.calibrate, smk.threads)
     logging.info("calibration: %s", metrics)
 
 

@@ -95,7 +95,8 @@ def test_sleap_anipose_calibrates_as_a_calibration_only_session(real_data, tmp_p
     if not (real_data / "sleap-anipose-charuco-4cam").is_dir():
         pytest.skip("sleap-anipose-charuco-4cam absent")
     params = yaml.safe_load((PROJECT_ROOT / "config" / "sleap-charuco.yaml").read_text())["params"]["calibrate"]
-    m = run_calibrate(PROJECT_ROOT / "config" / "calibration-only" / "sleap-charuco", tmp_path / "calib", params)
+    m = run_calibrate(PROJECT_ROOT / "config" / "calibration-only" / "sleap-charuco", tmp_path / "calib", params,
+                      workers=2)
     print({k: m[k] for k in ("rms_px", "camera_rms_px", "heldout_reprojection_rms_px", "heldout_camera_rms_px",
                              "heldout_scale_deviation_pct", "plausibility_flags", "seconds")})
     # measured: fitted 0.283 px (0.16-0.47 per camera), held out 0.100 px (5 poses, 350 corners), scale +0.003 %
@@ -123,7 +124,7 @@ def pose2sim_intrinsics(real_data, tmp_path_factory):
         "name": "pose2sim", "cameras": ["cam01", "cam02", "cam03", "cam04"], "image_size": [1088, 1920],
         "board": {"type": "chessboard", "squares_x": 5, "squares_y": 8, "square_size_mm": 60.0},
         "calibration": {"intrinsics_images": "{data}/pose2sim-calibration-4cam/intrinsics/int_{cam}_img"}}))
-    est = known_intrinsics(read_session(folder), from_config({}))
+    est = known_intrinsics(read_session(folder), from_config({}), workers=2)
     ref = _qualisys_intrinsics(d / "Calib.qca.txt")
     got = {c: np.array([k.K[0, 0], k.K[1, 1], k.K[0, 2], k.K[1, 2]]) for c, k in est.items()}
     print({c: (np.round(100 * (got[c][:2] / ref[c][:2] - 1), 2), np.round(got[c][2:] - ref[c][2:], 1)) for c in ref})

@@ -40,7 +40,7 @@ def session(tmp_path_factory):
 
 def run_calibration(folder, out_dir, params, eval_path=None) -> dict:
     """rule calibrate, then (synthetic session) rule eval_calibration; the two metric blocks merged."""
-    metrics = run_calibrate(folder, out_dir, params)
+    metrics = run_calibrate(folder, out_dir, params, workers=2)  # the rule's 2 threads: 2 detection processes
     if eval_path is not None:
         metrics = {**metrics, **run_eval_calibration(Path(out_dir) / "cameras.json",
                                                      Path(folder) / "ground_truth" / "cameras.json", eval_path)}
@@ -179,9 +179,22 @@ def test_a_bad_calibration_image_is_named_and_nothing_is_written(session, tmp_pa
     s = _copy(session, tmp_path)
     corrupt(s / "calib" / image)
     out = tmp_path / "out"
-    with pytest.raises(InputError, match=message):
-        run_calibrate(s, out / "calib", {})
+    with pytest.raises(InputError, match=message) as err:
+        run_calibrate(s, out / "calib", {}, workers=2)  # raised in a detection process, re-raised whole
+    assert err.value.path.endswith(image) and err.value.fix
     _assert_nothing_written(out)
+
+
+def test_detection_in_two_processes_equals_one(session):
+    from rigbuild.calibrate.detect import detect_paths
+
+    spec = read_session(session[0])
+    paths = spec.calib_images(spec.cameras[0])
+    one = detect_paths(paths, spec.board, (spec.width, spec.height))
+    two = detect_paths(paths, spec.board, (spec.width, spec.height), workers=2)
+    assert len(one) == len(two) == len(paths) and sum(len(d) for d in one) > 0
+    for a, b in zip(one, two):
+        assert np.array_equal(a.ids, b.ids) and np.array_equal(a.corners, b.corners)
 
 
 def _edit_yaml(folder: Path, fn) -> None:
@@ -214,7 +227,7 @@ def test_rms_gate_writes_every_output_with_status_fail_then_fails(session, tmp_p
     ``gate: warn`` goes on. Gates that fail before any fit (too few images) still leave nothing."""
     out = tmp_path / "out"
     with pytest.raises(QualityGateError, match=r"(?s)cam0\d: RMS .* worst images calib/cam0\d/\d+\.png.*calib_diagnostics"):
-        run_calibrate(session[0], out / "calib", {"max_rms_px": 0.03})
+        run_calibrate(session[0], out / "calib", {"max_rms_px": 0.03}, workers=2)
     for folder in ("calib", "calib_diagnostics"):
         for rel in OUTPUT_FILES:
             assert (out / folder / rel).stat().st_size > 0, (folder, rel)
@@ -222,16 +235,16 @@ def test_rms_gate_writes_every_output_with_status_fail_then_fails(session, tmp_p
     assert m["status"] == "fail" and "RMS above params.calibrate.max_rms_px" in m["gate"] and m["n_gate_failures"] == 1
     rows = (out / "calib" / "reprojection_per_image.csv").read_text().strip().splitlines()
     assert len(rows) == 1 + 4 * 12
-    warned = run_calibrate(session[0], tmp_path / "warn" / "calib", {"max_rms_px": 0.03, "gate": "warn"})
+    warned = run_calibrate(session[0], tmp_path / "warn" / "calib", {"max_rms_px": 0.03, "gate": "warn"}, workers=2)
     assert warned["status"] == "fail" and (tmp_path / "warn" / "calib" / "cameras.json").exists()
-    passed = run_calibrate(session[0], tmp_path / "pass" / "calib", {"heldout_every": 0})
+    passed = run_calibrate(session[0], tmp_path / "pass" / "calib", {"heldout_every": 0}, workers=2)
     assert passed["status"] == "pass" and passed["gate"] is None
     assert not (tmp_path / "pass" / "calib_diagnostics").exists()
     with pytest.raises(QualityGateError, match=r"fewer than 30 usable board images"):
-        run_calibrate(session[0], tmp_path / "few" / "calib", {"min_images": 30})
+        run_calibrate(session[0], tmp_path / "few" / "calib", {"min_images": 30}, workers=2)
     _assert_nothing_written(tmp_path / "few")
     with pytest.raises(InputError, match="params.calibrate.gate"):
-        run_calibrate(session[0], tmp_path / "bad" / "calib", {"gate": "ignore"})
+        run_calibrate(session[0], tmp_path / "bad" / "calib", {"gate": "ignore"}, workers=2)
 
 
 def _ict_block() -> dict:
@@ -271,7 +284,7 @@ def test_heldout_reprojection_fragment(calibrated, session, tmp_path):
     assert 0.1 < stage["heldout_reprojection_rms_px"] < 0.5
     assert abs(stage["heldout_scale_deviation_pct"]) < 0.2
     assert stage["status"] == "pass" and stage["intrinsics_source"] == {f"cam0{i}": "rig" for i in range(4)}
-    k3 = run_calibrate(session[0], tmp_path / "k3" / "calib", {"fix_k3": True})
+    k3 = run_calibrate(session[0], tmp_path / "k3" / "calib", {"fix_k3": True}, workers=2)
     assert k3["heldout_reprojection_rms_px"] < 0.12 and abs(k3["heldout_scale_deviation_pct"]) < 0.05
 
 

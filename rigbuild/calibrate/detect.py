@@ -237,13 +237,35 @@ def is_usable(det: Detection, board: BoardSpec, min_corners: int) -> bool:
     return bool(sv[-1] > 0.25 * board.square_size_mm)
 
 
+def _detect_path(job: tuple) -> Detection:
+    path, board, image_size, subpix_window = job
+    return detect_board(read_gray(path, image_size), board, subpix_window)
+
+
+def detect_paths(paths: Iterable[str | os.PathLike], board: BoardSpec, image_size: tuple[int, int] | None = None,
+                 subpix_window: int | None = None, workers: int = 1, label: str = "board detection"
+                 ) -> list[Detection]:
+    """:func:`detect_board` on each image file, in order, in ``workers`` forked processes when > 1 (ArUco and
+    chessboard detection run on one core each; images are independent). Errors (:func:`read_gray`) are raised
+    as in one process, naming the file."""
+    import multiprocessing as mp
+
+    jobs = [(p, board, image_size, subpix_window) for p in paths]
+    workers = int(min(max(workers, 1), len(jobs)))
+    if workers > 1 and "fork" in mp.get_all_start_methods():
+        with mp.get_context("fork").Pool(workers) as pool:
+            return list(progress(pool.imap(_detect_path, jobs), label, total=len(jobs), unit="image"))
+    return [_detect_path(j) for j in progress(jobs, label, total=len(jobs), unit="image")]
+
+
 def detect_images(
     images: Mapping[str, Mapping[str, str | os.PathLike]],
     board: BoardSpec,
     image_size: tuple[int, int] | None = None,
     subpix_window: int | None = None,
+    workers: int = 1,
 ) -> dict[str, dict[str, Detection]]:
-    """Detect the board in every image.
+    """Detect the board in every image (:func:`detect_paths`, ``workers`` processes).
 
     images : camera id -> view key -> image path. The view key names the board pose: images of
         different cameras with the same key were taken at the same instant (synchronized capture).
@@ -251,11 +273,11 @@ def detect_images(
 
     Returns camera id -> view key -> :class:`Detection` (possibly empty).
     """
-    out: dict[str, dict[str, Detection]] = {}
-    for cam, views in images.items():
-        out[cam] = {}
-        for key, path in progress(views.items(), f"board detection {cam}", total=len(views), unit="image"):
-            out[cam][key] = detect_board(read_gray(path, image_size), board, subpix_window)
+    keys = [(cam, key) for cam, views in images.items() for key in views]
+    dets = detect_paths([images[c][k] for c, k in keys], board, image_size, subpix_window, workers)
+    out: dict[str, dict[str, Detection]] = {cam: {} for cam in images}
+    for (cam, key), d in zip(keys, dets):
+        out[cam][key] = d
     return out
 
 

@@ -28,7 +28,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from rigbuild.calibrate.detect import (Detection, count_corners, describe_board, detect_board, detect_images,
+from rigbuild.calibrate.detect import (Detection, count_corners, describe_board, detect_images, detect_paths,
                                       diagnose_board, is_usable, read_gray, session_images)
 from rigbuild.calibrate.heldout import heldout_errors, split_views
 from rigbuild.calibrate.intrinsics import calibrate_intrinsics, calibration_flags, given_intrinsics
@@ -68,10 +68,11 @@ def no_board_error(spec: SessionSpec, images: Mapping[str, Mapping[str, Path]], 
                       "images)")
 
 
-def known_intrinsics(spec: SessionSpec, params: CalibrationOptions) -> dict[str, KnownIntrinsics]:
+def known_intrinsics(spec: SessionSpec, params: CalibrationOptions, workers: int = 1) -> dict[str, KnownIntrinsics]:
     """camera id -> intrinsics known before the rig fit: session.yaml ``intrinsics:`` (source ``given``),
     else Zhang's method on the camera's own ``calib_intrinsics/<cam>/`` images (source ``images``, with the
-    stage's model options). Cameras with neither are absent (their intrinsics come from the rig footage)."""
+    stage's model options; detected in ``workers`` processes). Cameras with neither are absent (their
+    intrinsics come from the rig footage)."""
     out = {c: KnownIntrinsics(K, d, "given") for c, (K, d) in
            given_intrinsics(spec.raw.get("intrinsics"), spec.root, spec.cameras).items()}
     pts, _ = spec.board.corner_points()
@@ -81,8 +82,8 @@ def known_intrinsics(spec: SessionSpec, params: CalibrationOptions) -> dict[str,
         paths = spec.intrinsics_images(cam)
         if cam in out or not paths:
             continue
-        dets = {p: detect_board(read_gray(p, (spec.width, spec.height)), spec.board, params.subpix_window)
-                for p in paths}
+        dets = dict(zip(paths, detect_paths(paths, spec.board, (spec.width, spec.height), params.subpix_window,
+                                            workers, f"intrinsics board detection {cam}")))
         if not any(len(d) for d in dets.values()):
             raise no_board_error(spec, {cam: {p.stem: p for p in paths}}, f"intrinsics ({spec.intrinsics_dir(cam)})")
         good = [d for d in dets.values() if is_usable(d, spec.board, params.min_corners)]
@@ -102,12 +103,13 @@ def consistent_labels(detections: Mapping[str, Mapping[str, Detection]], result:
                 for v, d in views.items()} for c, views in detections.items()}
 
 
-def calibrate_session(session_dir: str | os.PathLike, params: CalibrationOptions | Mapping | None = None
-                      ) -> tuple[SessionSpec, RigCalibration]:
+def calibrate_session(session_dir: str | os.PathLike, params: CalibrationOptions | Mapping | None = None,
+                      workers: int = 1) -> tuple[SessionSpec, RigCalibration]:
     """Detect the board in every calibration image of a session and calibrate the rig.
 
     params : the stage's parameters (a mapping goes through :func:`rigbuild.calibrate.params.from_config`;
         None = defaults).
+    workers : processes for the board detection (:func:`rigbuild.calibrate.detect.detect_paths`).
     Raises InputError (bad images, a board spec that matches no image) or QualityGateError (too few images,
     cameras not linked). The RMS and convergence gates do not raise: ``result.gate_failures`` lists them
     (:func:`rigbuild.calibrate.stage.run_calibrate` writes the outputs, then fails). With
@@ -118,11 +120,11 @@ def calibrate_session(session_dir: str | os.PathLike, params: CalibrationOptions
     params = params if isinstance(params, CalibrationOptions) else from_config(params)
     images = session_images(spec)
     t0 = time.perf_counter()
-    detections = detect_images(images, spec.board, (spec.width, spec.height), params.subpix_window)
+    detections = detect_images(images, spec.board, (spec.width, spec.height), params.subpix_window, workers)
     t_detect = time.perf_counter() - t0
     if count_corners(detections) == 0:
         raise no_board_error(spec, images)
-    known = known_intrinsics(spec, params)
+    known = known_intrinsics(spec, params, workers)
     names = {c: {v: str(p.relative_to(spec.root)) if p.is_relative_to(spec.root) else f"{c}/{p.name}"
                  for v, p in views.items()} for c, views in images.items()}
     result = calibrate_rig(detections, spec.board, (spec.width, spec.height), params, image_names=names,

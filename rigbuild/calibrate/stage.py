@@ -21,18 +21,19 @@ from rigbuild.errors import QualityGateError
 
 
 def run_calibrate(session_dir: str | os.PathLike, out_dir: str | os.PathLike,
-                  params: Mapping[str, Any] | None) -> dict[str, Any]:
+                  params: Mapping[str, Any] | None, workers: int = 1) -> dict[str, Any]:
     """Calibrate a session and write every output into ``out_dir`` (``calib_metrics.json`` is the fragment
     ``{"calibration": {...}}``).
 
     params : the raw ``config["params"]["calibrate"]`` block (checked by :func:`from_config`).
+    workers : processes for the board detection (the rule's threads).
     Returns the ``calibration`` metrics; raises QualityGateError after writing when the gate fails
     (``gate: fail``).
     """
     from rigbuild.calibrate.session import OUTPUT_FILES, calibrate_session, write_outputs
 
     opt = from_config(params)
-    spec, result = calibrate_session(session_dir, opt)
+    spec, result = calibrate_session(session_dir, opt, workers)
     metrics = write_outputs(result, out_dir, spec.name)
     if not result.gate_failures:
         return metrics
