@@ -178,6 +178,25 @@ def test_depth_to_image_grid_undistorts():
     np.testing.assert_allclose(d_img[uv[:, 1].astype(int), uv[:, 0].astype(int)], 500 + 0.1 * pin[:, 0], atol=1e-3)
 
 
+def test_depth_to_image_grid_with_precomputed_cells_is_identical_and_a_step_stays_out():
+    from rigbuild.track.features import depth_discontinuity, image_to_pinhole_cells
+
+    cam = _cam("d", dist=(-0.2, 0.05, 0.001, -0.002, 0.01))
+    H, W = cam.height, cam.width
+    ys, xs = np.mgrid[0:H, 0:W]
+    d_pin = np.where(xs < W // 2, 500 + 0.1 * xs, 560.0).astype(np.float32)  # a 30+ mm step at the middle
+    d_pin[100:110, 50:60] = 0  # a hole
+    once = depth_to_image_grid(d_pin, cam)
+    cells = image_to_pinhole_cells(cam, cam.K, d_pin.shape)
+    assert np.array_equal(depth_to_image_grid(d_pin, cam, cells=cells), once, equal_nan=True)
+    cols = np.isnan(once).mean(axis=0)
+    assert cols[W // 2 - 3:W // 2 + 3].max() > 0.9 and np.isnan(once).mean() < 0.1  # the step is cut, not smeared
+    # the 2x2 spread: max - min of the four neighbours, NaN when any is NaN (as a reduction over them)
+    d = np.array([[1.0, 2.0, np.nan], [4.0, 8.0, 3.0]], np.float32)
+    np.testing.assert_array_equal(depth_discontinuity(d, np.array([[0.5, 0.5], [1.5, 0.5], [-1, 0]])),
+                                  [7.0, np.nan, np.nan])
+
+
 def test_viewframe_requires_depth():
     with pytest.raises(InputError, match="no depth map"):
         ViewFrame(_cam(), np.zeros((240, 320, 3), np.uint8), None)

@@ -246,10 +246,8 @@ def _pixel_cells(shape: tuple[int, int], uv: np.ndarray):
     return ok, u0, v0, u[ok] - u0, v[ok] - v0
 
 
-def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear sample of a (H, W) float image at pixels uv (N, 2); NaN outside or next to NaN."""
-    img = np.asarray(image)  # indexed first, converted after (no full-image float64 copy per call)
-    ok, u0, v0, du, dv = _pixel_cells(img.shape, uv)
+def _bilinear_in_cells(img: np.ndarray, cells) -> np.ndarray:
+    ok, u0, v0, du, dv = cells
     out = np.full(ok.shape, np.nan)
     c00, c01 = img[v0, u0].astype(np.float64), img[v0, u0 + 1].astype(np.float64)
     c10, c11 = img[v0 + 1, u0].astype(np.float64), img[v0 + 1, u0 + 1].astype(np.float64)
@@ -257,14 +255,26 @@ def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return out
 
 
+def _spread_in_cells(d: np.ndarray, cells) -> np.ndarray:
+    ok, u0, v0, _, _ = cells
+    out = np.full(ok.shape, np.nan)
+    a, b, c, e = d[v0, u0], d[v0, u0 + 1], d[v0 + 1, u0], d[v0 + 1, u0 + 1]
+    hi = np.maximum(np.maximum(a, b), np.maximum(c, e))  # NaN anywhere -> NaN, as a max over the four
+    lo = np.minimum(np.minimum(a, b), np.minimum(c, e))
+    out[ok] = hi.astype(np.float64) - lo.astype(np.float64)
+    return out
+
+
+def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear sample of a (H, W) float image at pixels uv (N, 2); NaN outside or next to NaN."""
+    img = np.asarray(image)  # indexed first, converted after (no full-image float64 copy per call)
+    return _bilinear_in_cells(img, _pixel_cells(img.shape, uv))
+
+
 def depth_discontinuity(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Max minus min of the 2x2 depth neighbourhood at uv (N,) (mm); NaN where any is NaN/outside."""
     d = np.asarray(depth)
-    ok, u0, v0, _, _ = _pixel_cells(d.shape, uv)
-    out = np.full(ok.shape, np.nan)
-    n = np.stack([d[v0, u0], d[v0, u0 + 1], d[v0 + 1, u0], d[v0 + 1, u0 + 1]], axis=1).astype(np.float64)
-    out[ok] = n.max(1) - n.min(1)
-    return out
+    return _spread_in_cells(d, _pixel_cells(d.shape, uv))
 
 
 def window_median_depth(depth: np.ndarray, uv: np.ndarray, radius_px: int, max_spread_mm: float) -> np.ndarray:
@@ -415,29 +425,39 @@ def cluster_lifted_dots(points_per_view: list[np.ndarray], radius_mm: float = 2.
     return clusters
 
 
-def depth_to_image_grid(depth_pinhole: np.ndarray, camera: Camera, K_pinhole: np.ndarray | None = None,
-                        max_step_mm: float = 2.0) -> np.ndarray:
-    """Resample a depth map computed on the undistorted pinhole grid of ``camera`` (same R, t; intrinsics
-    ``K_pinhole``, default ``camera.K``; 0 or NaN = none) onto the camera's distorted image grid, so it is
-    aligned with the images. Returns (H, W) float32 camera z in mm, NaN where none (or across a jump)."""
-    d = np.asarray(depth_pinhole, dtype=np.float32).copy()
-    d[~(d > 0)] = np.nan
-    if not np.any(camera.dist):
-        if K_pinhole is None or np.allclose(K_pinhole, camera.K):
-            return d
-    K = camera.K if K_pinhole is None else np.asarray(K_pinhole, dtype=np.float64)
+def image_to_pinhole_cells(camera: Camera, K_pinhole: np.ndarray, pinhole_shape: tuple[int, int]):
+    """Where each pixel of ``camera``'s distorted (H, W) image grid falls on its undistorted pinhole grid
+    (intrinsics ``K_pinhole`` (3, 3), grid ``pinhole_shape`` (H', W')): the 2x2 cells and bilinear offsets
+    (:func:`_pixel_cells`) of the H * W pixels. Constant per camera: :func:`depth_to_image_grid` reuses it for
+    every frame (``cells=``)."""
+    K = np.asarray(K_pinhole, dtype=np.float64)
     H, W = camera.height, camera.width
     ys, xs = np.mgrid[0:H, 0:W]
     uv = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
     xy = camera.undistort_points(uv)
     pu = xy[:, 0] * K[0, 0] + xy[:, 1] * K[0, 1] + K[0, 2]
     pv = xy[:, 1] * K[1, 1] + K[1, 2]
-    pin = np.stack([pu, pv], 1)
-    z = sample_bilinear(np.nan_to_num(d, nan=0.0), pin)
-    step = depth_discontinuity(d, pin)
+    return _pixel_cells(tuple(pinhole_shape), np.stack([pu, pv], 1))
+
+
+def depth_to_image_grid(depth_pinhole: np.ndarray, camera: Camera, K_pinhole: np.ndarray | None = None,
+                        max_step_mm: float = 2.0, cells=None) -> np.ndarray:
+    """Resample a depth map computed on the undistorted pinhole grid of ``camera`` (same R, t; intrinsics
+    ``K_pinhole``, default ``camera.K``; 0 or NaN = none) onto the camera's distorted image grid, so it is
+    aligned with the images. Returns (H, W) float32 camera z in mm, NaN where none (or across a jump).
+    ``cells``: :func:`image_to_pinhole_cells` of this camera, computed once for a sequence (None: here)."""
+    d = np.asarray(depth_pinhole, dtype=np.float32).copy()
+    d[~(d > 0)] = np.nan
+    if not np.any(camera.dist):
+        if K_pinhole is None or np.allclose(K_pinhole, camera.K):
+            return d
+    if cells is None:
+        cells = image_to_pinhole_cells(camera, camera.K if K_pinhole is None else K_pinhole, d.shape)
+    z = _bilinear_in_cells(np.nan_to_num(d, nan=0.0), cells)
+    step = _spread_in_cells(d, cells)
     z[~(step <= max_step_mm)] = np.nan
     z[~(z > 0)] = np.nan
-    return z.reshape(H, W).astype(np.float32)
+    return z.reshape(camera.height, camera.width).astype(np.float32)
 
 
 def surface_neighbours(vertices: np.ndarray, faces: np.ndarray, sources: np.ndarray, k: int = 5,

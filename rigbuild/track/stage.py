@@ -51,14 +51,15 @@ def read_image_rgb(path: str | os.PathLike) -> np.ndarray:
     return np.ascontiguousarray(img[..., ::-1])
 
 
-def read_depth_maps(path: str | os.PathLike, cameras) -> list[np.ndarray]:
+def read_depth_maps(path: str | os.PathLike, cameras, cells: dict | None = None) -> list[np.ndarray]:
     """Depth maps of one frame (one per camera, in camera order) resampled to the distorted image grids.
 
     path : the reconstruct stage's depth file (:mod:`rigbuild.io.depth`: camera z in mm on undistorted
     pinhole grids, 0 = none); cameras : the calibrated cameras. Returns (H, W) camera z mm per camera (NaN =
-    none)."""
+    none). ``cells``: a dict the caller keeps for a sequence; each camera's resampling cells
+    (:func:`rigbuild.track.features.image_to_pinhole_cells`) are computed once into it."""
     from rigbuild.io.depth import camera_depth_maps
-    from rigbuild.track.features import depth_to_image_grid
+    from rigbuild.track.features import depth_to_image_grid, image_to_pinhole_cells
 
     path = Path(path)
     if not path.exists():
@@ -69,13 +70,21 @@ def read_depth_maps(path: str | os.PathLike, cameras) -> list[np.ndarray]:
         if d.shape != (cam.height, cam.width):
             raise InputError(f"depth map of camera {cam.id} is {d.shape}, images are {(cam.height, cam.width)}",
                              path=path, fix="re-run reconstruct at the session's image size")
-        out.append(depth_to_image_grid(d, cam, K))
+        c = None
+        if cells is not None and np.any(cam.dist):
+            key = (cam.id, cam.K.tobytes(), np.asarray(cam.dist).tobytes(), np.asarray(K).tobytes(), d.shape)
+            c = cells.get(key)
+            if c is None:
+                c = cells[key] = image_to_pinhole_cells(cam, K, d.shape)
+        out.append(depth_to_image_grid(d, cam, K, cells=c))
     return out
 
 
-def load_views(spec, cameras, sequence: str, frame: int, depth_dir: str | os.PathLike) -> list[ViewFrame]:
-    """The views (image + depth map per camera) of one frame of a ROM sequence."""
-    depths = read_depth_maps(Path(depth_dir) / f"{frame:06d}.npz", cameras)
+def load_views(spec, cameras, sequence: str, frame: int, depth_dir: str | os.PathLike,
+               cells: dict | None = None) -> list[ViewFrame]:
+    """The views (image + depth map per camera) of one frame of a ROM sequence (``cells``: see
+    :func:`read_depth_maps`)."""
+    depths = read_depth_maps(Path(depth_dir) / f"{frame:06d}.npz", cameras, cells)
     return [ViewFrame(cam, read_image_rgb(spec.rom_image(sequence, cam.id, frame)), d)
             for cam, d in zip(cameras, depths)]
 
@@ -188,9 +197,10 @@ def run_track_sequence(session: str, session_dir: str | os.PathLike, cameras_pat
         neutral = z["vertices"].astype(np.float64)
         dot_surface = (z["dot_surface_vertices"], z["dot_surface_bary"]) if "dot_surface_vertices" in z else None
     anchor_seq = spec.rom[0]
-    anchor = load_views(spec, cameras, anchor_seq.name, anchor_seq.neutral_frame, anchor_depth_dir)
+    cells: dict = {}  # each camera's depth resampling, computed once for the sequence
+    anchor = load_views(spec, cameras, anchor_seq.name, anchor_seq.neutral_frame, anchor_depth_dir, cells)
     frame_ids = [f for f in seq.frames if f >= seq.neutral_frame]
-    frames = [load_views(spec, cameras, seq.name, f, depth_dir) for f in frame_ids]
+    frames = [load_views(spec, cameras, seq.name, f, depth_dir, cells) for f in frame_ids]
     t0 = time.perf_counter()
     V, C, markers, stats = track_rom_sequence(template, neutral, anchor, frames, frame_ids, seq.name, tp,
                                               progress=lambda s: log.info("frame %d: %s", s.frame, s),
