@@ -20,6 +20,9 @@ TEST_DEB_PACKAGES := chromium
 CLUSTER_DEB_PACKAGES := slurm-wlm munge slurmdbd mariadb-server
 CLUSTER_STAMP := $(VENV)/.cluster-installed
 CORES ?= 2
+# make test runs the suite on $(CORES) pytest-xdist workers (tests/conftest.py keeps the e2e and SLURM
+# modules on one, so the end-to-end session is built once); PYTEST_WORKERS="" runs it in one process.
+PYTEST_WORKERS ?= -n $(CORES)
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
@@ -38,7 +41,7 @@ unlock:
 test: setup
 	@$(MAKE) --no-print-directory system-deps DEB_PACKAGES="$(TEST_DEB_PACKAGES)" || echo "warning: Chromium not installed; the report screenshot test will skip"
 	@$(MAKE) --no-print-directory cluster-deps || echo "warning: SLURM or the slurm plugin not installed; the SLURM cluster test will skip"
-	@set +e; $(PY) -m pytest $(PYTEST_ARGS); rc=$$?; \
+	@set +e; $(PY) -m pytest $(PYTEST_WORKERS) $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests (exit 5) - treated as failure"; exit 1; fi; exit $$rc
 
 setup: system-deps $(STAMP)

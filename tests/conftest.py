@@ -13,6 +13,25 @@ import pytest  # noqa: E402
 from rigbuild.paths import data_dir, ict_dir  # noqa: E402
 
 
+#: test modules that share the session-scoped ``e2e_run`` (one build of the end-to-end session)
+E2E_MODULES = ("tests/test_workflow_e2e.py", "tests/test_cluster_slurm.py")
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """pytest-xdist (``make test`` runs ``-n 2``): every test is its own unit of work, load-balanced, except the
+    e2e and SLURM modules, which go to one worker together so that ``e2e_run`` is built once. (xdist's own
+    ``--dist loadgroup`` marks do nothing under pytest 9.2: it renames ``item._nodeid``, which pytest no longer
+    reads.)"""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class E2EGroupScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return "e2e" if nodeid.split("::")[0].endswith(E2E_MODULES) else nodeid
+
+    return E2EGroupScheduling(config, log)
+
+
 @pytest.fixture(scope="session")
 def real_data():
     """``$RIGBUILD_DATA`` (default ../shared/data); skips the test when the folder is absent."""

@@ -4,7 +4,7 @@
 tests/cluster/slurm_up.sh starts munged, MariaDB + slurmdbd, slurmctld and slurmd (``make cluster-deps``
 installs them from Debian); the module stops what it started. The local run it is compared with is the
 e2e tests' own run of the session (the session-scoped ``e2e_run`` fixture, tests/e2e_run.py: interrupted,
-then resumed through cluster-generic), built while the SLURM run idles between its status checks, so the
+then resumed), built while the SLURM run idles between its status checks, so the
 suite builds the session's results twice, not three times.
 Checks: every job but the local ``all`` target went through sbatch and sacct (from the accounting database)
 lists it COMPLETED in partition ``cpu`` with its rule in the job comment; the SLURM run finished the same jobs
@@ -70,7 +70,7 @@ def _cmd(tmp: Path, *extra: str) -> list[str]:
 @pytest.fixture(scope="module")
 def runs(cluster, tmp_path_factory, request):
     """The SLURM run of the e2e session, and as the local run the e2e tests' own run of it (``e2e_run``:
-    interrupted, then resumed through cluster-generic), built while the SLURM run waits on its status checks."""
+    interrupted, then resumed), built while the SLURM run waits on its status checks."""
     tmp = tmp_path_factory.mktemp("slurm")
     (tmp / "config.yaml").write_text(yaml.safe_dump(e2e_config(tmp)))
     # the plugin's default first status check is 40 s after each finish: fine on a farm, most of the run

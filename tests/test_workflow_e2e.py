@@ -4,8 +4,9 @@ One run serves three acceptance checks of the end-to-end issue:
 
 1. **resume**: `snakemake` is interrupted (SIGINT, as Ctrl-C or a scheduler does) while reconstruction
    runs; the next run finishes without redoing finished jobs and without using a half-written file;
-2. **cluster**: the resumed run goes through snakemake-executor-plugin-cluster-generic with a local
-   submit script, so every job runs as a separate process from files alone;
+2. **cluster**: a job of the finished run, forced again through ``workflow/profiles/local-cluster``
+   (snakemake-executor-plugin-cluster-generic with a local submit script), runs as a separate process from
+   files alone (the whole DAG that way: tests/test_cluster_slurm.py);
 3. **report**: the HTML report renders every section in headless Chromium (skipped when Chromium is absent).
 """
 
@@ -21,6 +22,9 @@ import pytest
 from dry_run import planned_jobs
 from e2e_run import job_env, snakemake_cmd
 from rigbuild.io.metrics import flatten_metrics
+from rigbuild.paths import PROJECT_ROOT
+
+PROFILES = PROJECT_ROOT / "workflow" / "profiles"
 
 
 def test_interrupted_run_resumes_without_redoing_finished_jobs(e2e_run):
@@ -54,11 +58,20 @@ def test_every_output_is_complete(e2e_run):
     assert n > 20
 
 
-def test_jobs_ran_as_separate_cluster_processes(e2e_run):
-    outs = list((e2e_run["tmp"] / "logs" / "cluster").glob("*.out"))
-    r2 = e2e_run["run2"]
-    n_jobs = (r2.stdout + r2.stderr).count("Submitted job")
-    assert n_jobs >= 5 and len(outs) >= n_jobs - 1  # the `all` target job is local
+def test_local_cluster_profile_runs_a_job_as_its_own_process(e2e_run, tmp_path):
+    """One job (eval_calibration) of a copy of the finished run, forced again through the local-cluster profile."""
+    from e2e_run import SUBMIT
+
+    work = tmp_path / "e2e"
+    shutil.copytree(e2e_run["tmp"], work, ignore=shutil.ignore_patterns("logs", "locks", "incomplete"))
+    r = subprocess.run(snakemake_cmd(work, "--profile", str(PROFILES / "local-cluster"), "--cluster-generic-submit-cmd",
+                                     SUBMIT, "--forcerun", "eval_calibration", "--until", "eval_calibration"),
+                       capture_output=True, text=True, env=job_env(), cwd=work, timeout=600)
+    log = r.stdout + r.stderr
+    assert r.returncode == 0, log[-3000:]
+    outs = list((work / "logs" / "cluster").glob("*eval_calibration*.out"))
+    assert "Submitted job" in log and len(outs) == 1, log[-3000:]
+    assert "Finished job" in outs[0].read_text() or "Finished jobid" in outs[0].read_text()
 
 
 def test_every_file_written_is_a_declared_output(e2e_run):
