@@ -95,6 +95,21 @@ def test_outputs_written(calibrated):
     assert len(img_rows) == 1 + 4 * 12  # every image listed, used or dropped
 
 
+def test_intrinsics_uncertainty_is_reported(calibrated):
+    """Each camera's principal point and focal length come with their standard deviation (the adjustment's
+    covariance), small on a rendered 12-pose session and no plausibility flag for it."""
+    results, metrics, _ = calibrated
+    m = metrics  # the calibration block
+    pp, f = m["camera_principal_point_sd_px"], m["camera_focal_sd_pct"]
+    print(pp, f)
+    assert set(pp) == set(f) == set(m["camera_rms_px"])
+    assert all(0 < v < 2.0 for v in pp.values()) and all(0 < v < 0.5 for v in f.values())
+    assert not any("uncertain" in t for t in (m["plausibility_flags"] or {}).values())
+    import csv
+    rows = list(csv.DictReader(open(results / "calib" / "reprojection_per_camera.csv")))
+    assert all(float(r["sd_cx"]) > 0 and float(r["sd_fy"]) > 0 for r in rows)
+
+
 def test_stage_fragment_has_no_ground_truth_keys(calibrated):
     """The calibrate job's fragment holds only its own numbers; the eval rule adds the errors vs ground truth."""
     results = calibrated[0]

@@ -248,6 +248,7 @@ def _finite_or_none(x: float) -> float | None:
 def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
     """The ``calibration`` block of the stage's metrics fragment (no ground truth)."""
     cam_rms = result.camera_rms()
+    sd = result.intrinsics_sd()
     m = {
         "status": result.status,
         "gate": "; ".join(f.splitlines()[0] for f in result.gate_failures) or None,
@@ -264,9 +265,8 @@ def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
         "bundle_iterations_nfev": result.bundle.nfev,
         "bundle_converged": result.bundle.status in (1, 2),
         "intrinsics_source": dict(result.intrinsics_source),
-        "camera_principal_point_sd_px": {c: _finite_or_none(np.max(s[2:])) for c, s in result.intrinsics_sd().items()},
-        "camera_focal_sd_pct": {c.id: _finite_or_none(100 * np.max(result.intrinsics_sd()[c.id][:2]) / c.K[0, 0])
-                                for c in result.cameras},
+        "camera_principal_point_sd_px": {c: _finite_or_none(np.max(s[2:])) for c, s in sd.items()},
+        "camera_focal_sd_pct": {c.id: _finite_or_none(100 * np.max(sd[c.id][:2]) / c.K[0, 0]) for c in result.cameras},
         "n_plausibility_flags": sum(len(f) for f in result.flags.values()),
         "plausibility_flags": {c: "; ".join(f) for c, f in result.flags.items() if f},
         "seconds": result.seconds.get("total"),
