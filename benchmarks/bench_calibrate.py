@@ -17,9 +17,11 @@
    calibration-only session config/calibration-only/sleap-charuco with config/sleap-charuco.yaml's
    parameters, timed end to end (detection, intrinsics, pose graph, bundle adjustment, held-out refit;
    goal: under 30 s on 2 cores); skipped when $RIGBUILD_DATA lacks it.
+7. Section 5 with separately shot intrinsics: 12 close-up boards per camera seen by it alone
+   (calib_intrinsics/<cam>/), their intrinsics held in the rig fit; the same bounds.
 
 Writes benchmarks/out/calibrate.json and prints a table.
-Run: OPENBLAS_NUM_THREADS=1 python benchmarks/bench_calibrate.py [--only timing,solver,accuracy,detection,rendered,real]
+Run: OPENBLAS_NUM_THREADS=1 python benchmarks/bench_calibrate.py [--only timing,solver,accuracy,detection,rendered,real,separate]
 (--only reruns the named sections and keeps the others from the existing json.)
 """
 
@@ -28,6 +30,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -134,8 +137,11 @@ def detection_timing(n=3):
             "corners_found": counts}
 
 
-def rendered_ict_tier(folder=None):
-    """Section 5: render config/ict.yaml's calibration images, calibrate, compare with ground truth."""
+def rendered_ict_tier(folder=None, intrinsics_poses: int = 0, params: dict | None = None):
+    """Section 5: render config/ict.yaml's calibration images, calibrate, compare with ground truth.
+    ``intrinsics_poses`` > 0 (section 7): also each camera's own close-up boards (calib_intrinsics/<cam>/), whose
+    intrinsics the rig fit holds (``params``: the stage's calibrate block; known_intrinsics fixed by default, or
+    prior)."""
     import tempfile
 
     import yaml
@@ -155,9 +161,11 @@ def rendered_ict_tier(folder=None):
     render_s = t_render = None  # None: a session rendered before was reused (--rendered-folder)
     if not (folder / "ground_truth" / "cameras.json").exists():
         t0 = time.perf_counter()
-        render_s = render_calibration_session(folder, "ict", block)["seconds"]
+        render_s = render_calibration_session(folder, "ict", block, intrinsics_poses=intrinsics_poses)["seconds"]
         t_render = time.perf_counter() - t0
-    spec, res = calibrate_session(folder, workers=2)  # the rule's 2 threads
+    from rigbuild.calibrate.params import from_config
+
+    spec, res = calibrate_session(folder, from_config(params or {}), workers=2)  # the rule's 2 threads
     truth = read_cameras(folder / "ground_truth" / "cameras.json")
     gt = np.load(folder / "ground_truth" / "board_poses.npz")
     # corner localisation: every observation the calibration used vs the true projection
@@ -177,7 +185,9 @@ def rendered_ict_tier(folder=None):
     out = {"session": "config/ict.yaml sessions.ict.synthetic (calibration images only)",
            "block": {k: block[k] for k in ("seed", "n_cameras", "image_size", "camera_distance_mm", "calib_poses",
                                            "board")},
-           "render_seconds": render_s, "render_and_write_seconds": t_render,
+           "render_seconds": render_s, "render_and_write_seconds": t_render, "intrinsics_poses": intrinsics_poses,
+           "params": params or {},
+           "intrinsics_source": m["intrinsics_source"],
            **{k: m[k] for k in ("rms_px", "max_camera_rms_px", "n_images_used", "n_images_dropped", "n_corners",
                                 "bundle_iterations_nfev", "bundle_converged", "seconds", "seconds_detect",
                                 "seconds_bundle")},
@@ -217,7 +227,7 @@ def real_footage():
             "seconds_rig_fit_and_heldout": wall - m["seconds_detect"], **{k: m[k] for k in keep}}
 
 
-SECTIONS = ("timing", "solver", "accuracy", "detection", "rendered", "real")
+SECTIONS = ("timing", "solver", "accuracy", "detection", "rendered", "real", "separate")
 
 
 def main(argv=None):
@@ -291,6 +301,17 @@ def main(argv=None):
         print(f"  (mean over cameras: centre {r['center_error_mm_mean']:.4f} mm, rotation "
               f"{r['rotation_error_deg_mean']:.4f} deg, focal {r['focal_error_pct_mean']:.4f} %; "
               f"scale {r['scale_error_pct']:+.4f} %)")
+    if "separate" in only:
+        print("== rendered ICT tier with separately shot intrinsics (12 close-ups per camera) vs bounds", BOUNDS)
+        with tempfile.TemporaryDirectory(prefix="bench_calib_sep_") as tmp:
+            for key, params in (("rendered_ict_tier_separate_intrinsics", {"known_intrinsics": "fixed"}),
+                                ("rendered_ict_tier_separate_intrinsics_prior", {"known_intrinsics": "prior"})):
+                r = rendered_ict_tier(Path(tmp) / "ict", intrinsics_poses=12, params=params)
+                out[key] = r
+                print(f"  {params}: intrinsics {sorted(set(r['intrinsics_source'].values()))}; calibrate "
+                      f"{r['seconds']:.1f} s")
+                for k, v in BOUNDS.items():
+                    print(f"  {k:28s} {r[k]:10.4f} {v:8.3f}  {'ok' if r['meets_bounds'][k] else 'NOT MET'}")
     if "real" in only:
         print("== real footage: sleap-anipose 4 cameras (calibration-only session)")
         r = real_footage()
