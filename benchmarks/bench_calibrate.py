@@ -18,7 +18,8 @@
    parameters, timed end to end (detection, intrinsics, pose graph, bundle adjustment, held-out refit;
    goal: under 30 s on 2 cores); skipped when $RIGBUILD_DATA lacks it.
 7. Section 5 with separately shot intrinsics: 12 close-up boards per camera seen by it alone
-   (calib_intrinsics/<cam>/), their intrinsics held in the rig fit; the same bounds.
+   (calib_intrinsics/<cam>/), their intrinsics held in the rig fit (known_intrinsics: fixed) or as priors
+   (prior); the same bounds.
 
 Writes benchmarks/out/calibrate.json and prints a table.
 Run: OPENBLAS_NUM_THREADS=1 python benchmarks/bench_calibrate.py [--only timing,solver,accuracy,detection,rendered,real,separate]

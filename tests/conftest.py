@@ -22,7 +22,9 @@ def pytest_xdist_make_scheduler(config, log):
     """pytest-xdist (``make test`` runs ``-n 2``): every test is its own unit of work, load-balanced, except the
     e2e and SLURM modules, which go to one worker together so that ``e2e_run`` is built once. (xdist's own
     ``--dist loadgroup`` marks do nothing under pytest 9.2: it renames ``item._nodeid``, which pytest no longer
-    reads.)"""
+    reads.) Another ``--dist`` given on the command line is left to xdist."""
+    if config.getoption("dist", "load") != "load":
+        return None
     from xdist.scheduler import LoadScopeScheduling
 
     class E2EGroupScheduling(LoadScopeScheduling):

@@ -195,6 +195,17 @@ def test_depth_to_image_grid_with_precomputed_cells_is_identical_and_a_step_stay
     d = np.array([[1.0, 2.0, np.nan], [4.0, 8.0, 3.0]], np.float32)
     np.testing.assert_array_equal(depth_discontinuity(d, np.array([[0.5, 0.5], [1.5, 0.5], [-1, 0]])),
                                   [7.0, np.nan, np.nan])
+    # and equal to the stacked reduction on a random float32 map with holes
+    rng = np.random.default_rng(3)
+    big = rng.uniform(400, 600, (60, 80)).astype(np.float32)
+    big[rng.random(big.shape) < 0.1] = np.nan
+    uv = rng.uniform(-2, 82, (5000, 2))
+    ok = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= 79) & (uv[:, 1] <= 59)
+    u0, v0 = np.minimum(np.floor(uv[ok, 0]).astype(int), 78), np.minimum(np.floor(uv[ok, 1]).astype(int), 58)
+    n = np.stack([big[v0, u0], big[v0, u0 + 1], big[v0 + 1, u0], big[v0 + 1, u0 + 1]], axis=1).astype(np.float64)
+    want = np.full(len(uv), np.nan)
+    want[ok] = n.max(1) - n.min(1)
+    np.testing.assert_array_equal(depth_discontinuity(big, uv), want)
 
 
 def test_viewframe_requires_depth():

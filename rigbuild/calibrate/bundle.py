@@ -280,24 +280,31 @@ def _levenberg_marquardt(problem: _BundleProblem, full: np.ndarray, loss: str, f
 
 
 def parameter_sd(problem: _BundleProblem, full: np.ndarray, loss: str, f_scale_px: float) -> np.ndarray:
-    """(C, 15) standard deviations of the camera unknowns at the solution ``full`` (NaN = held or tied).
+    """(C, 15) standard deviations of the camera unknowns at the solution ``full`` (NaN = held).
 
-    The Gauss-Newton covariance ``s^2 (J^T W J + P)^-1`` of the free unknowns, with ``W`` the robust weights,
-    ``P`` the prior terms and ``s^2 = sum(w |r|^2) / (2 n - free)`` the residual variance per coordinate
-    (OpenCV's ``calibrateCameraExtended`` convention). It says how well the board views pin each unknown
-    (for example a principal point from a few photos), not how far a biased model is from the truth.
+    The Gauss-Newton posterior covariance ``(J^T W J / s^2 + P)^-1`` of the free unknowns: ``W`` the robust
+    weights, ``s^2 = sum(w |r|^2) / (2 n - free)`` the residual variance per coordinate (px^2), ``P`` the priors'
+    ``1 / sigma^2``. Without priors it is OpenCV's ``calibrateCameraExtended`` convention ``s^2 (J^T W J)^-1``.
+    A tied fy (fixed aspect ratio) gets fx's deviation times the ratio. It says how well the board views (and
+    priors) pin each unknown, for example a principal point from a few photos, not how far a biased model is
+    from the truth. A variance that is not positive (a near-singular system) is NaN.
     """
     r = problem.residuals(full)
     _, w = robust_weights(np.sum(r ** 2, axis=1), loss, f_scale_px)
-    H, _ = problem.normal_equations(full, r, w)
-    H[np.diag_indices_from(H)] += problem.prior_terms(full)[2]
+    A, _ = problem.normal_equations(full, r, w)
     dof = max(2 * problem.n - problem.free.size, 1)
-    s2 = float(np.sum(w * np.sum(r ** 2, axis=1))) / dof
+    s2 = max(float(np.sum(w * np.sum(r ** 2, axis=1))) / dof, 1e-300)
+    H = A / s2
+    H[np.diag_indices_from(H)] += problem.prior_terms(full)[2]
     sd_full = np.full(full.size, np.nan)
     try:
-        sd_full[problem.free] = np.sqrt(np.maximum(np.diag(np.linalg.inv(H)), 0.0) * s2)
+        var = np.diag(np.linalg.inv(H))
+        sd_full[problem.free] = np.where(var > 0, np.sqrt(np.abs(var)), np.nan)
     except np.linalg.LinAlgError:  # a gauge left free: no finite covariance
         pass
+    if problem.tie is not None:
+        fx, fy, ratio = problem.tie
+        sd_full[fy] = sd_full[fx] * np.abs(ratio)
     return sd_full[: problem.C * N_CAM].reshape(problem.C, N_CAM)
 
 
@@ -362,8 +369,9 @@ def bundle_adjust(
     problem = _BundleProblem(obs, board_points, C, V, free, tie, prior)
     full, initial_rms, status, message = _levenberg_marquardt(problem, full, loss, f_scale_px, max_iterations, tol)
     full = problem.expand(full)
+    nfev, seconds = problem.nfev, time.perf_counter() - t0  # the solve's own (the covariance below is not)
     cam_sd = parameter_sd(problem, full, loss, f_scale_px)
     cp, bp = problem.split(full)
     res = project(cp, bp, obs, board_points) - obs.uv
     return BundleResult(cp.copy(), bp.copy(), res, float(np.sqrt(np.mean(np.sum(res ** 2, axis=1)))),
-                        initial_rms, problem.nfev, status, message, time.perf_counter() - t0, cam_sd)
+                        initial_rms, nfev, status, message, seconds, cam_sd)

@@ -33,8 +33,8 @@ class Intrinsics:
     R_views : (V, 3, 3), t_views : (V, 3) board-to-camera pose of each view (board units, mm);
     rms_px : RMS reprojection error over all corners (OpenCV's definition: sqrt(mean |du|^2));
     view_rms_px : (V,) per-view RMS.
-    sd : (4,) standard deviations of fx, fy, cx, cy, px (``cv2.calibrateCameraExtended``; 0 = held by a flag,
-        NaN = not estimated here).
+    sd : (4,) standard deviations of fx, fy, cx, cy, px (``cv2.calibrateCameraExtended``; NaN = held by a flag
+        or not estimated here).
     """
 
     K: np.ndarray
@@ -97,7 +97,12 @@ def calibrate_intrinsics(
         proj = cv2.projectPoints(o, r, tv, K, dist)[0].reshape(-1, 2)
         view_rms[i] = np.sqrt(np.mean(np.sum((proj - p.reshape(-1, 2)) ** 2, axis=1)))
     return Intrinsics(np.asarray(K, dtype=np.float64), np.pad(dist, (0, 5 - dist.size)), R, t, float(rms), view_rms,
-                      np.asarray(sd_intr, dtype=np.float64).reshape(-1)[:4].copy())
+                      _held_as_nan(np.asarray(sd_intr, dtype=np.float64).reshape(-1)[:4]))
+
+
+def _held_as_nan(sd: np.ndarray) -> np.ndarray:
+    """OpenCV reports 0 for an unknown a flag holds (fixed principal point, fx of a fixed aspect ratio)."""
+    return np.where(sd > 0, sd, np.nan)
 
 
 def board_poses(object_points: Sequence[np.ndarray], image_points: Sequence[np.ndarray], K: np.ndarray,

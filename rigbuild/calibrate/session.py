@@ -241,8 +241,10 @@ def _save_fig(fig, path) -> None:
     plt.close(fig)
 
 
-def _finite_or_none(x: float) -> float | None:
-    return float(x) if np.isfinite(x) else None
+def _max_finite(values: np.ndarray) -> float | None:
+    """The largest finite value (None: none, every unknown held)."""
+    v = np.asarray(values, dtype=np.float64)
+    return float(v[np.isfinite(v)].max()) if np.isfinite(v).any() else None
 
 
 def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
@@ -265,8 +267,8 @@ def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
         "bundle_iterations_nfev": result.bundle.nfev,
         "bundle_converged": result.bundle.status in (1, 2),
         "intrinsics_source": dict(result.intrinsics_source),
-        "camera_principal_point_sd_px": {c: _finite_or_none(np.max(s[2:])) for c, s in sd.items()},
-        "camera_focal_sd_pct": {c.id: _finite_or_none(100 * np.max(sd[c.id][:2]) / c.K[0, 0]) for c in result.cameras},
+        "camera_principal_point_sd_px": {c: _max_finite(s[2:]) for c, s in sd.items()},
+        "camera_focal_sd_pct": {c.id: _max_finite(100 * sd[c.id][:2] / c.K[0, 0]) for c in result.cameras},
         "n_plausibility_flags": sum(len(f) for f in result.flags.values()),
         "plausibility_flags": {c: "; ".join(f) for c, f in result.flags.items() if f},
         "seconds": result.seconds.get("total"),
