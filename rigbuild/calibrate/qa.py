@@ -108,13 +108,19 @@ def distortion_folds(K: np.ndarray, dist: np.ndarray, width: int, height: int) -
     return bool(r[down[0]] * (1 + k1 * rr + k2 * rr ** 2 + k3 * rr ** 3) < rd_max)
 
 
+def max_finite(values) -> float | None:
+    """The largest finite value of ``values`` (None: none finite, e.g. every unknown held)."""
+    v = np.asarray(values, dtype=np.float64)
+    return float(v[np.isfinite(v)].max()) if np.isfinite(v).any() else None
+
+
 def plausibility_flags(cameras: Sequence, board_poses: Mapping[str, int], min_board_poses: int,
                        max_aspect_pct: float = 5.0, principal_point_sd: Mapping[str, float] | None = None,
                        max_principal_point_sd_px: float = 5.0) -> dict[str, list[str]]:
     """camera id -> plausibility flags (empty list: none) of calibrated cameras.
 
     cameras : :class:`rigbuild.camera.Camera` list; board_poses : camera id -> board poses it saw.
-    principal_point_sd : camera id -> the larger standard deviation of cx, cy (px; NaN = not estimated).
+    principal_point_sd : camera id -> the larger standard deviation of cx, cy (px; NaN or None = not estimated).
     Flags: principal point outside the central third of the image, fx and fy differing by more than
     ``max_aspect_pct``, distortion that folds the image inside its frame, fewer than ``min_board_poses``,
     a principal point the board views pin no better than ``max_principal_point_sd_px`` (one sigma).
@@ -136,8 +142,8 @@ def plausibility_flags(cameras: Sequence, board_poses: Mapping[str, int], min_bo
         n = board_poses.get(cam.id, 0)
         if n < min_board_poses:
             flags.append(f"seen in {n} board poses (< params.calibrate.min_board_poses = {min_board_poses})")
-        sd = (principal_point_sd or {}).get(cam.id, float("nan"))
-        if sd > max_principal_point_sd_px:
+        sd = (principal_point_sd or {}).get(cam.id)
+        if sd is not None and sd > max_principal_point_sd_px:
             flags.append(f"principal point uncertain by {sd:.1f} px (one sigma, > {max_principal_point_sd_px:g}): "
                          "show the board tilted 30-50 degrees towards each side and near the image corners, "
                          "or fix_principal_point")

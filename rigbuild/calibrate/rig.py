@@ -303,8 +303,7 @@ def calibrate_rig(
     )
     result.flags = qa.plausibility_flags(cameras, {c.id: int(np.unique(obs.view[obs.cam == i]).size)
                                                    for i, c in enumerate(cameras)}, opt.min_board_poses,
-                                         principal_point_sd={c: float(np.nanmax(s[2:])) if np.isfinite(s[2:]).any()
-                                                             else float("nan") for c, s in
+                                         principal_point_sd={c: qa.max_finite(s[2:]) for c, s in
                                                              result.intrinsics_sd().items()})
     result.gate_failures = [m for m in (qa.rms_message(result.camera_rms(), result.image_rms(), opt.max_rms_px),
                                         qa.convergence_message(ba, opt.max_iterations)) if m]

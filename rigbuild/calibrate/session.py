@@ -30,6 +30,7 @@ import numpy as np
 
 from rigbuild.calibrate.detect import (Detection, count_corners, describe_board, detect_images, detect_paths,
                                       diagnose_board, is_usable, read_gray, session_images)
+from rigbuild.calibrate import qa
 from rigbuild.calibrate.heldout import heldout_errors, split_views
 from rigbuild.calibrate.intrinsics import calibrate_intrinsics, calibration_flags, given_intrinsics
 from rigbuild.calibrate.params import CalibrationOptions, from_config
@@ -241,12 +242,6 @@ def _save_fig(fig, path) -> None:
     plt.close(fig)
 
 
-def _max_finite(values: np.ndarray) -> float | None:
-    """The largest finite value (None: none, every unknown held)."""
-    v = np.asarray(values, dtype=np.float64)
-    return float(v[np.isfinite(v)].max()) if np.isfinite(v).any() else None
-
-
 def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
     """The ``calibration`` block of the stage's metrics fragment (no ground truth)."""
     cam_rms = result.camera_rms()
@@ -267,8 +262,8 @@ def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
         "bundle_iterations_nfev": result.bundle.nfev,
         "bundle_converged": result.bundle.status in (1, 2),
         "intrinsics_source": dict(result.intrinsics_source),
-        "camera_principal_point_sd_px": {c: _max_finite(s[2:]) for c, s in sd.items()},
-        "camera_focal_sd_pct": {c.id: _max_finite(100 * sd[c.id][:2] / c.K[0, 0]) for c in result.cameras},
+        "camera_principal_point_sd_px": {c: qa.max_finite(s[2:]) for c, s in sd.items()},
+        "camera_focal_sd_pct": {c.id: qa.max_finite(100 * sd[c.id][:2] / c.K[0, 0]) for c in result.cameras},
         "n_plausibility_flags": sum(len(f) for f in result.flags.values()),
         "plausibility_flags": {c: "; ".join(f) for c, f in result.flags.items() if f},
         "seconds": result.seconds.get("total"),
