@@ -37,7 +37,10 @@ rule reconstruct_frame:
         "logs/{session}/reconstruct/{sequence}/{frame}.log",
     benchmark:
         "results/{session}/benchmarks/reconstruct_{sequence}_{frame}.tsv"
-    threads: 2
+    # one core per frame: Poisson, fusion and file I/O are serial, so two frames side by side keep both cores
+    # busy where one frame on two would leave one idle (the depth maps are the same at any thread count);
+    # a single re-run frame goes faster with --set-threads reconstruct_frame=2
+    threads: 1
     resources:
         mem_mb=3000,
     # open3d's multithreaded Poisson solver can segfault at random (not reproducible on rerun); a retry
