@@ -234,3 +234,50 @@ def test_visibility_counts_occlusion():
     assert cnt[:4].tolist() == [2, 2, 2, 2] and cnt[4:].tolist() == [0, 0, 0, 0]
     d = surface_distance(np.array([[0.0, 0.0, 3.0], [0.0, 0.0, -2.0]]), sq, F[:2])
     assert np.allclose(d, [3.0, 2.0], atol=1e-4)
+
+
+def test_coverage_tiles_draw_the_depth_grid_image():
+    """The coverage montage shows each view's undistorted image (the grid its depth map is on), grey at 0.6,
+    depth pixels + 90 green, foreground without depth + 110 red."""
+    from rigbuild.reconstruct.frame import FrameReconstruction
+    from rigbuild.reconstruct.sequence import coverage_tiles
+    from rigbuild.reconstruct.stereo import pinhole
+
+    cam = pinhole(_cam(dist=np.array([-0.1, 0.02, 0.0, 0.0, 0.0])))
+    H, W = cam.height, cam.width
+    und = np.zeros((H, W, 3), np.uint8)
+    und[:, : W // 2] = 200
+    depth = np.zeros((1, H, W), np.float32)
+    depth[0, 60:90] = 400.0
+    mask = np.zeros((1, H, W), bool)
+    mask[0, 90:] = True
+    empty = np.zeros((0, 3))
+    rec = FrameReconstruction([cam], depth, depth * 0, depth.astype(np.uint8), mask, empty, empty, empty, empty,
+                              np.zeros((0, 3), np.int64), {"coverage": {cam.id: 0.5}}, [und])
+    t = coverage_tiles(rec, tile_width=W).astype(int)
+    assert t.shape == (H, W, 3)
+    assert (t[40:60, : W // 2] == 120).all() and (t[40:60, W // 2:] == 0).all()
+    assert (t[60:90, : W // 2] == (120, 210, 120)).all() and (t[60:90, W // 2:] == (0, 90, 0)).all()
+    assert (t[90:, : W // 2] == (120, 120, 230)).all() and (t[90:, W // 2:] == (0, 0, 110)).all()
+
+
+def test_mask_of_a_distorted_view_ignores_the_undistortion_fill():
+    """A bright disk on a uniform grey backdrop seen through pincushion distortion: undistorting fills the corners
+    with black, which as the backdrop level would make the whole captured field foreground; the mask is found on the
+    captured image and resampled, so it is the disk (and the fill is background)."""
+    import cv2
+
+    from rigbuild.reconstruct.masks import foreground_mask, pinhole_foreground_mask
+    from rigbuild.reconstruct.stereo import to_gray_float, undistort_view
+
+    cam = _cam(W=320, H=240, f=220.0, dist=np.array([0.3, 0.05, 0.0, 0.0, 0.0]))
+    img = np.full((240, 320), 110, np.uint8)
+    cv2.circle(img, (160, 120), 50, 230, -1)
+    und, _ = undistort_view(img, cam)
+    assert (und == 0).mean() > 0.02  # the fill is there
+    old = foreground_mask(to_gray_float(und), dilate_px=0, erode_px=0)  # on the undistorted image: the backdrop too
+    assert old[und > 0].mean() > 0.95
+    m = pinhole_foreground_mask(img, cam, dilate_px=0, erode_px=0)
+    disk = undistort_view((img > 170).astype(np.uint8), cam)[0]
+    near = cv2.dilate(disk, np.ones((11, 11), np.uint8)) > 0  # the blur and the texture window widen the edge
+    assert m[disk > 0].all() and not m[~near].any()

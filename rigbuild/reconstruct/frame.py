@@ -14,7 +14,7 @@ from rigbuild.reconstruct.consistency import stereo_consistency
 from rigbuild.reconstruct.filter import _map_views, consistency_filter, views_within_angle
 from rigbuild.reconstruct.fuse import (crop_mesh, keep_components, normalize_rows, pixel_normals, poisson_mesh, robust_bbox,
                                        tsdf_mesh, voxel_average)
-from rigbuild.reconstruct.masks import foreground_mask, image_problem
+from rigbuild.reconstruct.masks import image_problem, pinhole_foreground_mask
 from rigbuild.reconstruct.params import ReconstructParams
 from rigbuild.reconstruct.stereo import auto_depth_range, compute_depth_map, select_neighbours, to_gray_float, undistort_view
 
@@ -28,6 +28,8 @@ class FrameReconstruction:
         (0 where no depth); n_views : (N, H, W) uint8 agreeing views; mask : (N, H, W) bool foreground.
     points, normals : (P, 3) fused oriented cloud; colors : (P, 3) float in [0, 1] (RGB).
     mesh_vertices (V, 3), mesh_faces (F, 3) : the surface, cropped to the head / object.
+    undistorted : per view the image resampled onto its pinhole grid (the grid of ``depth``), as given (dtype,
+        channels).
     stats : coverage per view (fraction of foreground pixels with depth), ``stereo_consistency_mm`` and
         ``stereo_consistency_p90_mm`` (median and 90th percentile of the cross-view disagreement of the
         stereo's depth before filtering, :func:`rigbuild.reconstruct.consistency.stereo_consistency` over the
@@ -45,6 +47,7 @@ class FrameReconstruction:
     mesh_vertices: np.ndarray
     mesh_faces: np.ndarray
     stats: dict = field(default_factory=dict)
+    undistorted: list[np.ndarray] = field(default_factory=list)
 
 
 def check_views(images: Sequence[np.ndarray | None], cameras: Sequence[Camera], names: Sequence[str] | None = None) -> list[str]:
@@ -98,8 +101,8 @@ def reconstruct_frame(images: Sequence[np.ndarray | None], cameras: Sequence[Cam
     pcams = [c for _, c in und]
     gray = [to_gray_float(u) for u, _ in und]
     sp = params.stereo
-    masks = [foreground_mask(g, params.mask_threshold, dilate_px=params.mask_dilate_px,
-                             erode_px=params.mask_erode_px) for g in gray]
+    masks = [pinhole_foreground_mask(img, cam, params.mask_threshold, dilate_px=params.mask_dilate_px,
+                                     erode_px=params.mask_erode_px) for img, cam in zip(images, cameras)]
     nbrs = select_neighbours(pcams, sp.n_neighbours, sp.min_angle_deg, sp.max_angle_deg)
     t1, c1 = time.perf_counter(), time.process_time()
     def stereo_view(i: int):
@@ -168,4 +171,5 @@ def reconstruct_frame(images: Sequence[np.ndarray | None], cameras: Sequence[Cam
         "cpu_seconds": {"prepare": c1 - c0, "stereo": c2 - c1, "filter_fuse": c3 - c2, "surface": c4 - c3,
                         "total": c4 - c0},
     }
-    return FrameReconstruction(pcams, depth, conf, np.stack(cons.n_views), mask, P, N, C, V, F, stats)
+    return FrameReconstruction(pcams, depth, conf, np.stack(cons.n_views), mask, P, N, C, V, F, stats,
+                               [u for u, _ in und])

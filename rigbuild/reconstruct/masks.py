@@ -61,6 +61,21 @@ def foreground_mask(gray: np.ndarray, threshold: float = 0.08, background_level:
     return m | hole[lab2]
 
 
+def pinhole_foreground_mask(image: np.ndarray, camera, threshold: float = 0.08, dilate_px: int = 10,
+                            erode_px: int = 7) -> np.ndarray:
+    """(H, W) bool :func:`foreground_mask` of a captured (distorted) image, resampled onto the pinhole grid of
+    ``camera`` (:func:`rigbuild.reconstruct.stereo.undistort_view`, the grid of the depth maps).
+
+    The mask is found on the image as captured: undistorting first fills the corners outside the lens's
+    field with black, which would set the backdrop level and make every pixel foreground. Pinhole pixels
+    outside the captured field are background.
+    """
+    from rigbuild.reconstruct.stereo import to_gray_float, undistort_view
+
+    m = foreground_mask(to_gray_float(image), threshold, dilate_px=dilate_px, erode_px=erode_px)
+    return undistort_view(m.astype(np.uint8), camera)[0] > 0
+
+
 def image_problem(gray: np.ndarray, dark_level: float = 0.03, saturated_level: float = 0.99,
                   max_saturated_fraction: float = 0.5, min_std: float = 0.005) -> str | None:
     """A reason string if an image cannot be used for stereo, else None.

@@ -84,16 +84,17 @@ def read_image(path: Path) -> np.ndarray | None:
     return img
 
 
-def coverage_tiles(rec: FrameReconstruction, images: Sequence[np.ndarray], tile_width: int = 320) -> np.ndarray:
-    """(h, w, 3) uint8 BGR montage: per camera its image in grey, depth pixels tinted green, foreground
-    pixels without depth tinted red, and the coverage percentage written on it."""
+def coverage_tiles(rec: FrameReconstruction, tile_width: int = 320) -> np.ndarray:
+    """(h, w, 3) uint8 BGR montage: per camera its undistorted image (``rec.undistorted``, the depth maps' grid)
+    in grey, depth pixels tinted green, foreground pixels without depth tinted red, and the coverage percentage
+    written on it."""
     import cv2
 
-    from rigbuild.reconstruct.stereo import to_gray_float, undistort_view
+    from rigbuild.reconstruct.stereo import to_gray_float
 
     tiles = []
     for k, cam in enumerate(rec.cameras):
-        und, _ = undistort_view(images[k], cam)
+        und = rec.undistorted[k]
         g = (to_gray_float(und) * 255).astype(np.uint8)
         t = cv2.cvtColor(g, cv2.COLOR_GRAY2BGR).astype(np.float32) * 0.6
         has = rec.depth[k] > 0
@@ -186,7 +187,7 @@ def process_frame(frame: int, paths: Sequence[Path], cameras: Sequence[Camera], 
     write_ply(out / "mesh" / f"{f:06d}.ply", rec.mesh_vertices, faces=rec.mesh_faces)
     write_geometry(out / "geometry" / f"{f:06d}.npz", rec.points, rec.mesh_vertices, rec.mesh_faces)
     with atomic_path(out / "coverage" / f"{f:06d}.png", suffix=".png") as tmp:
-        cv2.imwrite(str(tmp), coverage_tiles(rec, images))
+        cv2.imwrite(str(tmp), coverage_tiles(rec))
     record = {"frame": f, "skipped": None}
     record.update({k: rec.stats[k] for k in ("coverage", "stereo_consistency_mm", "stereo_consistency_p90_mm",
                                              "n_points", "n_mesh_vertices", "n_mesh_faces", "seconds",
