@@ -20,6 +20,11 @@
 7. Section 5 with separately shot intrinsics: 12 close-up boards per camera seen by it alone
    (calib_intrinsics/<cam>/), their intrinsics held in the rig fit (known_intrinsics: fixed) or as priors
    (prior); the same bounds.
+8. The corners' noise model on the realistic tiers' own calibration images (rigbuild.synth.session.
+   generate_calibration_only: the bytes the pipeline's generator writes): the development actor
+   (config/ict-dev.yaml, where the choice is made) and the acceptance actors (config/ict.yaml, config/ict-b.yaml),
+   each calibrated with config/config.yaml's calibrate block and with it under robust_scale_px 1 (equal weights,
+   1 px soft-L1), auto, and auto + noise_model view_angle; the same bounds.
 
 Writes benchmarks/out/calibrate.json and prints a table.
 Run: OPENBLAS_NUM_THREADS=1 python benchmarks/bench_calibrate.py [--only timing,solver,accuracy,detection,rendered,real,separate]
@@ -228,7 +233,50 @@ def real_footage():
             "seconds_rig_fit_and_heldout": wall - m["seconds_detect"], **{k: m[k] for k in keep}}
 
 
-SECTIONS = ("timing", "solver", "accuracy", "detection", "rendered", "real", "separate")
+NOISE_TIERS = (("ict-dev.yaml", "ict_dev"), ("ict.yaml", "ict"), ("ict-b.yaml", "ict_b"))
+NOISE_VARIANTS = (("fixed_1px", {"robust_scale_px": 1.0, "noise_model": "none"}),
+                  ("auto", {"robust_scale_px": "auto", "noise_model": "none"}),
+                  ("auto_view_angle", {"robust_scale_px": "auto", "noise_model": "view_angle"}))
+
+
+def noise_models(folder: Path) -> dict:
+    """Section 8: each tier's calibration images (rendered into ``folder``/<session>, reused if there), calibrated
+    with each noise variant over config/config.yaml's calibrate block; errors against the truth."""
+    import yaml
+
+    from rigbuild.calibrate.params import from_config
+    from rigbuild.calibrate.session import calibrate_session, calibration_metrics
+    from rigbuild.io.cameras import read_cameras
+    from rigbuild.synth.session import generate_calibration_only
+
+    base = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["params"]["calibrate"]
+    out = {"base_params": base, "variants": dict(NOISE_VARIANTS), "tiers": {}}
+    for config, name in NOISE_TIERS:
+        block = yaml.safe_load((ROOT / "config" / config).read_text())["sessions"][name]["synthetic"]
+        sess = folder / name
+        if not (sess / "session.yaml").exists():
+            t0 = time.perf_counter()
+            generate_calibration_only(sess, name, block)
+            print(f"  {name}: rendered in {time.perf_counter() - t0:.0f} s")
+        truth = read_cameras(sess / "ground_truth" / "cameras.json")
+        rows = {}
+        for key, variant in NOISE_VARIANTS:
+            spec, res = calibrate_session(sess, from_config({**base, **variant}), workers=2)
+            m = calibration_metrics(res)
+            row = {**{k: m[k] for k in ("rms_px", "seconds_bundle", "bundle_iterations_nfev")},
+                   "heldout_reprojection_rms_px": (res.heldout or {}).get("rms_px"), "noise": res.noise,
+                   **compare_cameras(res.cameras, truth)}
+            row["meets_bounds"] = {k: bool(row[k] <= v) for k, v in BOUNDS.items()}
+            rows[key] = row
+            print(f"  {name:8s} {key:16s} rms {row['rms_px']:.3f} px  focal {row['focal_error_pct']:.4f} %  pp "
+                  f"{row['principal_point_error_px']:.3f} px  centre {row['center_error_mm']:.4f} mm  rotation "
+                  f"{row['rotation_error_deg']:.4f} deg (mean {row['rotation_error_deg_mean']:.4f})  bundle "
+                  f"{row['seconds_bundle']:.1f} s")
+        out["tiers"][name] = {"config": f"config/{config}", "seed": block["seed"], **rows}
+    return out
+
+
+SECTIONS = ("timing", "solver", "accuracy", "detection", "rendered", "real", "separate", "noise")
 
 
 def main(argv=None):
@@ -313,6 +361,13 @@ def main(argv=None):
                       f"{r['seconds']:.1f} s")
                 for k, v in BOUNDS.items():
                     print(f"  {k:28s} {r[k]:10.4f} {v:8.3f}  {'ok' if r['meets_bounds'][k] else 'NOT MET'}")
+    if "noise" in only:
+        print("== corner noise model on the realistic tiers' calibration images vs bounds", BOUNDS)
+        if args.rendered_folder:
+            out["noise_models"] = noise_models(Path(args.rendered_folder))
+        else:
+            with tempfile.TemporaryDirectory(prefix="bench_calib_noise_") as tmp:
+                out["noise_models"] = noise_models(Path(tmp))
     if "real" in only:
         print("== real footage: sleap-anipose 4 cameras (calibration-only session)")
         r = real_footage()

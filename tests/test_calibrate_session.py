@@ -128,6 +128,12 @@ def test_unknown_calibrate_key_fails_with_did_you_mean(session, tmp_path):
         from_config({"max_rms": 0.5})
     with pytest.raises(InputError, match="robust_loss"):
         from_config({"robust_loss": "l2"})
+    for bad in ("adaptive", -0.5, 0, True):
+        with pytest.raises(InputError, match="robust_scale_px': must be a number of pixels > 0 or 'auto'"):
+            from_config({"robust_scale_px": bad})
+    with pytest.raises(InputError, match="(?s)noise_model.*use one of none, view_angle"):
+        from_config({"noise_model": "angle"})
+    assert from_config({"robust_scale_px": "auto", "noise_model": "view_angle"}).robust_scale_px == "auto"
     with pytest.raises(InputError, match="did you mean 'fix_k3'"):
         run_calibrate(session[0], tmp_path / "calib", {"fix_k": True})
     assert not (tmp_path / "calib").exists()

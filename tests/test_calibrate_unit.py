@@ -110,6 +110,63 @@ def test_bundle_robust_loss_rejects_outliers():
     assert np.median(np.linalg.norm(robust.residuals, axis=1)) < 0.1
 
 
+def test_robust_noise_px_reads_the_gaussian_sigma_through_outliers():
+    from rigbuild.calibrate.bundle import robust_noise_px
+
+    rng = np.random.default_rng(4)
+    r = rng.normal(0, 0.3, (20000, 2))
+    assert abs(robust_noise_px(r) - 0.3) < 0.006
+    r[:1000] = rng.uniform(5, 10, (1000, 2))  # 5 % outliers move the median by about 1/16 of a sigma
+    assert abs(robust_noise_px(r) - 0.3) < 0.3 * 0.08
+    assert robust_noise_px(np.array([[3.0, 4.0]])) == pytest.approx(5 / np.sqrt(2 * np.log(2)))
+
+
+def test_view_angles_of_a_board_seen_face_on_and_turned():
+    from rigbuild.calibrate.bundle import view_angles_deg
+
+    pts = np.array([[0.0, 0, 0], [100.0, 0, 0], [0, 0, 0]])
+    cam = np.zeros((1, 15))  # at the origin looking down +z
+    cam[0, 6:10] = [800, 800, 320, 240]
+    boards = np.array([[0, 0, 0, 0, 0, 100.0],  # face-on, 100 mm ahead
+                       [0, np.radians(30), 0, 0, 0, 100.0]])  # turned 30 degrees about its y axis
+    obs = Observations(np.zeros(3, np.int64), np.array([0, 0, 1]), np.array([0, 1, 2]), np.zeros((3, 2)))
+    a = view_angles_deg(cam, boards, obs, pts)
+    assert a == pytest.approx([0.0, 45.0, 30.0], abs=1e-9)
+
+
+def test_view_angle_weights_are_inverse_variances_of_the_bins():
+    from rigbuild.calibrate.bundle import view_angle_weights
+
+    rng = np.random.default_rng(5)
+    angles = np.repeat([10.0, 40.0, 70.0], 4000)
+    sig = np.repeat([0.05, 0.1, 0.4], 4000)
+    w, edges, sigma = view_angle_weights(angles + rng.uniform(-5, 5, angles.size), rng.normal(0, 1, (12000, 2))
+                                         * sig[:, None], n_bins=3)
+    assert sigma == pytest.approx([0.05, 0.1, 0.4], rel=0.05)
+    assert np.median(w) == pytest.approx(1.0) and w[0] / w[-1] == pytest.approx((0.4 / 0.05) ** 2, rel=0.1)
+    assert view_angle_weights(np.arange(20.0), np.ones((20, 2)))[0] == pytest.approx(np.ones(20))  # one bin
+
+
+def test_auto_robust_scale_follows_the_corner_noise():
+    """Corners at 0.05 px with 1-3 px outliers (as a detector gives on steep views): a fixed 1 px scale
+    weighs the outliers nearly fully, the auto scale (3 sigma of the first fit's residuals) does not."""
+    cams, poses, det = _sim(noise=0.05, seed=3)
+    rng = np.random.default_rng(11)
+    for cam in det:
+        for d in det[cam].values():
+            k = rng.random(len(d)) < 0.05
+            d.corners[k] += rng.choice([-1, 1], (k.sum(), 2)) * rng.uniform(1, 3, (k.sum(), 2))
+    fixed = calibrate_rig(det, BOARD, (640, 480), CalibrationOptions(max_rms_px=10))
+    auto = calibrate_rig(det, BOARD, (640, 480), CalibrationOptions(max_rms_px=10, robust_scale_px="auto"))
+    e_f, e_a = compare_cameras(fixed.cameras, cams), compare_cameras(auto.cameras, cams)
+    print(f"fixed 1 px: {e_f}; auto: {e_a}; noise {auto.noise}")
+    assert 0.05 <= auto.noise["noise_px"] < 0.08  # the first (1 px) fit's inliers, a little pulled by the outliers
+    assert auto.noise["robust_scale_px"] == pytest.approx(3 * auto.noise["noise_px"])
+    assert e_a["principal_point_error_px"] < 0.7 * e_f["principal_point_error_px"]
+    assert e_a["rotation_error_deg"] < 0.7 * e_f["rotation_error_deg"]
+    assert fixed.noise is None and auto.bundle.nfev > fixed.bundle.nfev
+
+
 def test_project_matches_camera_project():
     cams, poses, det = _sim(n_cams=2, n_poses=3, noise=0.0)
     pts, _ = BOARD.corner_points()

@@ -95,6 +95,55 @@ def project(cam_params: np.ndarray, board_params: np.ndarray, obs: Observations,
     return np.stack([cp[:, 6] * xd + cp[:, 8], cp[:, 7] * yd + cp[:, 9]], axis=1)
 
 
+#: ``robust_scale_px: auto``: the robust loss's scale in units of the corners' noise (:func:`robust_noise_px`)
+AUTO_SCALE_SIGMAS = 3.0
+
+
+def robust_noise_px(residuals: np.ndarray) -> float:
+    """Per-coordinate noise, px, of 2-D residuals (N, 2) from their median: ``sqrt(median |r|^2 / (2 ln 2))``
+    (|r|^2 / sigma^2 of Gaussian noise is chi-square with 2 degrees of freedom, median 2 ln 2); outliers
+    do not inflate it."""
+    sq = np.sum(np.asarray(residuals, np.float64).reshape(-1, 2) ** 2, axis=1)
+    return float(np.sqrt(np.median(sq) / (2 * np.log(2)))) if len(sq) else float("nan")
+
+
+def view_angles_deg(cam_params: np.ndarray, board_params: np.ndarray, obs: Observations,
+                    board_points: np.ndarray) -> np.ndarray:
+    """(N,) angle, degrees, between each observation's viewing ray and its board's normal (0 = seen
+    face-on; the foreshortening that blurs a corner grows with it). Parameters as :func:`project`."""
+    Rc = rodrigues(cam_params[:, 0:3])
+    Rb = rodrigues(board_params[:, 0:3])
+    Xw = np.einsum("nij,nj->ni", Rb[obs.view], board_points[obs.corner]) + board_params[obs.view, 3:6]
+    centres = -np.einsum("nji,nj->ni", Rc[obs.cam], cam_params[obs.cam, 3:6])  # C = -R^T t
+    ray = Xw - centres
+    normal = Rb[obs.view][:, :, 2]
+    cos = np.abs(np.sum(ray * normal, axis=1)) / np.linalg.norm(ray, axis=1)
+    return np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
+
+
+def view_angle_weights(angles_deg: np.ndarray, residuals: np.ndarray, n_bins: int = 8,
+                       min_per_bin: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Inverse noise variance of each corner from how noisy corners seen at its angle are.
+
+    The observations are split into ``n_bins`` bins of equal count by view angle (fewer bins when there are
+    fewer than ``min_per_bin`` per bin); each bin's noise is the robust per-coordinate deviation of its
+    residuals (N, 2) px (:func:`robust_noise_px`). Returns (weights (N,) = (sigma_ref / sigma_bin)^2, with sigma_ref the
+    median over observations of their bin's sigma; bin edges (B + 1,) degrees; bin sigmas (B,) px).
+    """
+    a = np.asarray(angles_deg, np.float64)
+    n = len(a)
+    bins = int(max(1, min(n_bins, n // max(min_per_bin, 1))))
+    edges = np.quantile(a, np.linspace(0, 1, bins + 1)) if n else np.zeros(bins + 1)
+    idx = np.clip(np.searchsorted(edges, a, side="right") - 1, 0, bins - 1)
+    r = np.asarray(residuals, np.float64)
+    sigma = np.array([robust_noise_px(r[idx == b]) if np.any(idx == b) else np.nan for b in range(bins)])
+    floor = np.nanmax(sigma) * 1e-3 if np.any(np.isfinite(sigma)) else 1.0
+    sigma = np.where(np.isfinite(sigma), np.maximum(sigma, max(floor, 1e-6)), np.nanmax(sigma))
+    s_obs = sigma[idx]
+    ref = float(np.median(s_obs)) if n else 1.0
+    return (ref / s_obs) ** 2, edges, sigma
+
+
 def jacobian_sparsity(obs: Observations, n_cams: int, n_views: int, free: np.ndarray) -> lil_matrix:
     """(2N, n_free) structure: residual rows of observation i touch its camera's and its board's columns."""
     n_full = n_cams * N_CAM + n_views * N_BOARD
@@ -148,8 +197,11 @@ class _BundleProblem:
 
     def __init__(self, obs: Observations, board_points: np.ndarray, C: int, V: int, free: np.ndarray,
                  tie: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-                 prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
+                 prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                 obs_weight: np.ndarray | None = None):
         self.obs, self.board_points, self.C, self.V, self.free = obs, board_points, C, V, free
+        # per-observation sqrt of the noise weight: residuals are whitened to px of the reference noise
+        self.sqrt_w = None if obs_weight is None else np.sqrt(np.asarray(obs_weight, np.float64))[:, None]
         self.n = len(obs)
         self.nfev = 0
         self.tie = tie  # (fx index, fy index, fy / fx): fy follows fx (fixed aspect ratio)
@@ -187,10 +239,11 @@ class _BundleProblem:
         return float(np.sum(d ** 2)), g, h
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
-        """(n, 2) reprojection residuals, px."""
+        """(n, 2) reprojection residuals, px (times sqrt of the observation weights, when given)."""
         self.nfev += 1
         cp, bp = self.split(self.expand(x))
-        return project(cp, bp, self.obs, self.board_points) - self.obs.uv
+        r = project(cp, bp, self.obs, self.board_points) - self.obs.uv
+        return r if self.sqrt_w is None else r * self.sqrt_w
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         """(n, 2, 21) derivatives of each observation's residual w.r.t. its 21 local unknowns."""
@@ -232,7 +285,8 @@ def _levenberg_marquardt(problem: _BundleProblem, full: np.ndarray, loss: str, f
     """Damped IRLS Gauss-Newton from ``full``; returns (solution, initial RMS px, status, message)."""
     free = problem.free
     r = problem.residuals(full)
-    initial_rms = float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
+    r_px = r if problem.sqrt_w is None else r / problem.sqrt_w
+    initial_rms = float(np.sqrt(np.mean(np.sum(r_px ** 2, axis=1))))
     costs, w = robust_weights(np.sum(r ** 2, axis=1), loss, f_scale_px)
     cost = costs.sum() + problem.prior_terms(full)[0]
     lam = 1e-3
@@ -322,6 +376,7 @@ def bundle_adjust(
     fixed: np.ndarray | None = None,
     tie_aspect: np.ndarray | None = None,
     prior_sigma: np.ndarray | None = None,
+    obs_weight: np.ndarray | None = None,
 ) -> BundleResult:
     """Minimize robust reprojection error over all camera poses, intrinsics, distortion and board poses.
 
@@ -342,6 +397,9 @@ def bundle_adjust(
     tie_aspect : (C,) bool, cameras whose fy follows fx at the initial ratio fy / fx (fixed aspect ratio).
     prior_sigma : (C, 15) standard deviations of Gaussian priors at the initial values (inf = none),
         in the unknowns' units (px for fx..cy); a prior on a held unknown has no effect.
+    obs_weight : (N,) relative inverse noise variance of each observation (:func:`view_angle_weights`), None =
+        equal; residuals are scaled by its square root before the robust loss (``f_scale_px`` then refers to
+        an observation of weight 1). The returned residuals and RMS stay plain pixels.
     """
     t0 = time.perf_counter()
     C, V = cam_params.shape[0], board_params.shape[0]
@@ -366,7 +424,7 @@ def bundle_adjust(
         pos = np.flatnonzero(np.isfinite(sig[free]))
         if pos.size:
             prior = (pos, full[free[pos]].copy(), sig[free[pos]])
-    problem = _BundleProblem(obs, board_points, C, V, free, tie, prior)
+    problem = _BundleProblem(obs, board_points, C, V, free, tie, prior, obs_weight)
     full, initial_rms, status, message = _levenberg_marquardt(problem, full, loss, f_scale_px, max_iterations, tol)
     full = problem.expand(full)
     nfev, seconds = problem.nfev, time.perf_counter() - t0  # the solve's own (the covariance below is not)

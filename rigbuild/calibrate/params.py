@@ -20,6 +20,8 @@ WHERE = "params.calibrate"
 
 #: what the quality gate does when it fails: fail the job (after writing every output) or only warn
 GATES = ("fail", "warn")
+#: how the bundle weighs the corners: equally, or by the noise of corners seen at the same angle to the board
+NOISE_MODELS = ("none", "view_angle")
 #: how known intrinsics (session.yaml ``intrinsics:`` or ``calib_intrinsics/<cam>/`` images) enter the rig fit
 KNOWN_INTRINSICS = ("fixed", "prior")
 
@@ -33,7 +35,13 @@ class CalibrationOptions:
     max_rms_px : QA gate: largest allowed per-camera reprojection RMS after the adjustment.
     gate : ``fail`` (default): a failed RMS / convergence gate writes every output, then fails the job;
         ``warn``: it is logged and reported (status fail) and the pipeline goes on.
-    robust_loss, robust_scale_px : loss (``soft_l1``, ``huber``, ``cauchy``, ``linear``) and scale (px).
+    robust_loss, robust_scale_px : loss (``soft_l1``, ``huber``, ``cauchy``, ``linear``) and scale (px), or
+        ``auto``: a first adjustment at 1 px, then a second one at 3 times the corners' noise estimated from its
+        residuals (:func:`rigbuild.calibrate.bundle.robust_noise_px`), so that a corner is down-weighted from
+        about 3 sigma on, whatever the detector's accuracy.
+    noise_model : ``none``: every corner weighs the same; ``view_angle``: a first adjustment, then the corners
+        are binned by their angle to the board and each weighed by the inverse noise variance of its bin's
+        residuals, and the adjustment is repeated (:func:`rigbuild.calibrate.bundle.view_angle_weights`).
     fix_k3 : hold k3 = 0 (4-parameter Brown model) - for narrow lenses or few images.
     fix_tangential : hold p1 = p2 = 0.
     fix_principal_point : hold the principal point at the image centre.
@@ -58,7 +66,8 @@ class CalibrationOptions:
     max_rms_px: float = 0.5
     gate: str = "fail"
     robust_loss: str = "soft_l1"
-    robust_scale_px: float = 1.0
+    robust_scale_px: float | str = 1.0
+    noise_model: str = "none"
     fix_k3: bool = False
     fix_tangential: bool = False
     fix_principal_point: bool = False
@@ -86,6 +95,11 @@ def from_config(values: Mapping[str, Any] | None) -> CalibrationOptions:
     on an unknown key or a bad value."""
     p = from_mapping(CalibrationOptions, values, WHERE)
     _one_of(p, "robust_loss", ROBUST_LOSSES)
+    _one_of(p, "noise_model", NOISE_MODELS)
+    if p.robust_scale_px != "auto" and (isinstance(p.robust_scale_px, bool) or
+                                        not isinstance(p.robust_scale_px, (int, float)) or not p.robust_scale_px > 0):
+        raise InputError(f"field '{WHERE}.robust_scale_px': must be a number of pixels > 0 or 'auto', got "
+                         f"{p.robust_scale_px!r}", path="config")
     _one_of(p, "gate", GATES)
     _one_of(p, "known_intrinsics", KNOWN_INTRINSICS)
     if p.subpix_window is not None and (not isinstance(p.subpix_window, int) or p.subpix_window < 0):

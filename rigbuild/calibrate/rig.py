@@ -18,7 +18,8 @@ import numpy as np
 
 from rigbuild.calibrate import qa
 from rigbuild.calibrate.bundle import CX, CY, FX, K3_INDEX, N_CAM, TANGENTIAL, BundleResult, Observations, \
-    bundle_adjust
+    AUTO_SCALE_SIGMAS, bundle_adjust, robust_noise_px, view_angle_weights, \
+    view_angles_deg
 from rigbuild.calibrate.detect import Detection, is_usable
 from rigbuild.calibrate.intrinsics import Intrinsics, board_poses, calibrate_intrinsics, calibration_flags
 from rigbuild.errors import QualityGateError
@@ -61,6 +62,9 @@ class RigCalibration:
     gate_failures: list[str] = field(default_factory=list)  # RMS / convergence gate messages (empty: pass)
     heldout: dict | None = None  # rigbuild.calibrate.heldout.heldout_errors of a fit without every n-th pose
     known_sd: dict[str, np.ndarray] = field(default_factory=dict)  # camera id -> KnownIntrinsics.sd
+    # a second adjustment's noise model: corner noise_px and the robust_scale_px it set (robust_scale_px auto), the
+    # angle bins' edges (deg) and noise (px) (noise_model view_angle)
+    noise: dict | None = None
 
     @property
     def status(self) -> str:
@@ -282,9 +286,29 @@ def calibrate_rig(
     board_params = np.stack([np.concatenate([rotation_to_rvec(graph.boards[v][0]), graph.boards[v][1]])
                              for v in view_keys])
     fixed, tie, prior = _held_unknowns(cam_ids, known, opt)
-    ba = bundle_adjust(cam_params, board_params, obs, pts, fixed_pose_cams=(cam_ids.index(reference),),
-                       loss=opt.robust_loss, f_scale_px=opt.robust_scale_px, max_iterations=opt.max_iterations,
-                       tol=opt.tolerance, fixed=fixed, tie_aspect=tie, prior_sigma=prior)
+    def adjust(cp0, bp0, scale, weight=None):
+        return bundle_adjust(cp0, bp0, obs, pts, fixed_pose_cams=(cam_ids.index(reference),),
+                             loss=opt.robust_loss, f_scale_px=scale, max_iterations=opt.max_iterations,
+                             tol=opt.tolerance, fixed=fixed, tie_aspect=tie, prior_sigma=prior, obs_weight=weight)
+
+    auto = opt.robust_scale_px == "auto"
+    ba = adjust(cam_params, board_params, 1.0 if auto else float(opt.robust_scale_px))
+    noise = None
+    if auto or opt.noise_model == "view_angle":  # a second adjustment from the first one's corner noise
+        weight = None
+        if opt.noise_model == "view_angle":  # corners seen obliquely are noisier: weigh them by their angle's noise
+            weight, edges, sigma = view_angle_weights(view_angles_deg(ba.cam_params, ba.board_params, obs, pts),
+                                                      ba.residuals)
+            noise = {"view_angle_edges_deg": edges.tolist(), "sigma_px": sigma.tolist()}
+        white = ba.residuals if weight is None else ba.residuals * np.sqrt(weight)[:, None]
+        noise_px = robust_noise_px(white)
+        scale = max(AUTO_SCALE_SIGMAS * noise_px, 1e-3) if auto else float(opt.robust_scale_px)
+        noise = {**(noise or {}), "noise_px": noise_px, "robust_scale_px": scale}
+        first = ba
+        ba = adjust(first.cam_params, first.board_params, scale, weight)
+        ba.nfev += first.nfev
+        ba.seconds += first.seconds
+        ba.initial_rms_px = first.initial_rms_px
     t3 = time.perf_counter()
 
     cameras = []
@@ -295,7 +319,7 @@ def calibrate_rig(
     result = RigCalibration(
         cameras=cameras, reference=reference, view_keys=view_keys,
         board_R=rodrigues(ba.board_params[:, 0:3]), board_t=ba.board_params[:, 3:6].copy(), obs=obs,
-        residuals=ba.residuals, board_points=pts, image_names=names, dropped=dropped,
+        residuals=ba.residuals, board_points=pts, image_names=names, dropped=dropped, noise=noise,
         initial_rms_px={c: (known[c].rms_px if c in known else intr[c].rms_px) for c in cam_ids}, bundle=ba,
         graph=graph, seconds={"intrinsics": t1 - t0, "pose_graph": t2 - t1, "bundle": t3 - t2, "total": t3 - t0},
         intrinsics_source={c: known[c].source if c in known else "rig" for c in cam_ids},

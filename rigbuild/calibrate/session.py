@@ -270,6 +270,8 @@ def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
         "seconds_detect": result.seconds.get("detect"),
         "seconds_bundle": result.seconds.get("bundle"),
     }
+    if result.noise is not None:  # the second adjustment's noise model (robust_scale_px auto, noise_model)
+        m.update(corner_noise_px=result.noise["noise_px"], robust_scale_px=result.noise["robust_scale_px"])
     h = result.heldout or {}
     if "rms_px" in h:
         m.update(heldout_reprojection_rms_px=h["rms_px"], heldout_camera_rms_px=h["camera_rms_px"],

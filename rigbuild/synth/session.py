@@ -241,6 +241,31 @@ def generate_mocap_only(out_dir: str | os.PathLike, name: str, synthetic: dict |
     return out_dir
 
 
+def generate_calibration_only(out_dir: str | os.PathLike, name: str, synthetic: dict | None) -> Path:
+    """The session's calibration images without the ROM or the performances: ``calib/<cam>/<n>.png``,
+    ``ground_truth/`` (rigs, cameras.json, board_poses.npz, board_visibility.json) and ``session.yaml``, the same
+    bytes :func:`generate_session` writes for them (the same seeds), for benchmarks of the calibration stage.
+    ``out_dir`` is replaced. Returns it."""
+    from rigbuild.session import session_from_dict, write_session
+    from rigbuild.synth.capture import capture_setup
+
+    p = synth_params(synthetic)
+    plan = plan_session(name, synthetic)
+    out_dir = Path(out_dir)
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    out_dir.mkdir(parents=True)
+    spec = session_from_dict(plan, out_dir)
+    gt = out_dir / "ground_truth"
+    actor, _ = _write_rigs(gt, spec, p)
+    face_centre = actor.neutral[actor.face_vertices].mean(0)
+    cameras = _write_cameras(gt, spec, p, name, face_centre)
+    setup = capture_setup(p, actor, cameras, face_centre, spec.width)
+    _render_calibration(out_dir, gt, spec, p, cameras, face_centre, setup, lambda msg: None)
+    write_session(plan, out_dir)
+    return out_dir
+
+
 def _write_rigs(gt: Path, spec, p: dict):
     """Load the template, make the actor and write both rigs (and actor_info.json) under ``gt``.
 
