@@ -107,6 +107,12 @@ def robust_noise_px(residuals: np.ndarray) -> float:
     return float(np.sqrt(np.median(sq) / (2 * np.log(2)))) if len(sq) else float("nan")
 
 
+def ray_angle_deg(rays: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(N,) angle, degrees, between viewing rays (N, 3) and unit board normals (N, 3) or (3,) (0 = face-on)."""
+    cos = np.abs(np.sum(rays * normals, axis=-1)) / np.linalg.norm(rays, axis=-1)
+    return np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
+
+
 def view_angles_deg(cam_params: np.ndarray, board_params: np.ndarray, obs: Observations,
                     board_points: np.ndarray) -> np.ndarray:
     """(N,) angle, degrees, between each observation's viewing ray and its board's normal (0 = seen
@@ -115,10 +121,7 @@ def view_angles_deg(cam_params: np.ndarray, board_params: np.ndarray, obs: Obser
     Rb = rodrigues(board_params[:, 0:3])
     Xw = np.einsum("nij,nj->ni", Rb[obs.view], board_points[obs.corner]) + board_params[obs.view, 3:6]
     centres = -np.einsum("nji,nj->ni", Rc[obs.cam], cam_params[obs.cam, 3:6])  # C = -R^T t
-    ray = Xw - centres
-    normal = Rb[obs.view][:, :, 2]
-    cos = np.abs(np.sum(ray * normal, axis=1)) / np.linalg.norm(ray, axis=1)
-    return np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
+    return ray_angle_deg(Xw - centres, Rb[obs.view][:, :, 2])
 
 
 def view_angle_weights(angles_deg: np.ndarray, residuals: np.ndarray, n_bins: int = 8,

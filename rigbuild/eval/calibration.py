@@ -12,6 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
+from rigbuild.calibrate.bundle import ray_angle_deg
 from rigbuild.camera import Camera, distort_normalized
 from rigbuild.errors import InputError
 from rigbuild.geometry.rigid import fit_similarity, rotation_angle_deg
@@ -90,8 +91,7 @@ def corner_localisation_errors(detections, truth: Sequence[Camera], board, poses
             X = pts[det.ids] @ R.T + t
             errs.append(det.corners - cam.project(X))
             cam_idx.append(np.full(len(det), ci))
-            ray = X - cam.center
-            angles.append(np.degrees(np.arccos(np.clip(np.abs(ray @ R[:, 2]) / np.linalg.norm(ray, axis=1), 0, 1))))
+            angles.append(ray_angle_deg(X - cam.center, R[:, 2]))
     if not errs:
         return {"errors": np.zeros((0, 2)), "camera": np.zeros(0, np.int64), "view_angle_deg": np.zeros(0)}
     return {"errors": np.vstack(errs), "camera": np.concatenate(cam_idx), "view_angle_deg": np.concatenate(angles)}
