@@ -115,6 +115,27 @@ def test_first_frame_not_neutral_is_an_input_error(scene, registered):
                            TrackParams(neutral_check_mm=1.0))
 
 
+def test_neutral_start_with_dots_missing_is_not_an_expression(scene, registered):
+    """A rest frame whose head moved and where a fifth of the dots are not seen (occluded, dimmed) starts the
+    sequence: missing dots are not evidence of an expression, misfitting ones are."""
+    import cv2
+
+    from rigbuild.track.stage import track_rom_sequence
+
+    template, actor, verts, frames = scene
+    hidden = []
+    for v in frames[2]:  # the dots of a vertical strip of the face wiped out in every view
+        img = v.image.copy()
+        x0, x1 = int(0.44 * img.shape[1]), int(0.50 * img.shape[1])
+        img[:, x0:x1] = cv2.medianBlur(img, 21)[:, x0:x1]
+        hidden.append(ViewFrame(v.camera, img, v.depth))
+    _, _, _, stats = track_rom_sequence(template, registered.vertices, frames[0], [hidden], [2], "romX",
+                                        TrackParams(levels=("features",)))
+    print("dots found", stats[0].dots)
+    assert stats[0].dots < 0.9 * (registered.dot_labels >= 0).sum()  # the old gate counted these as misfits
+    assert not stats[0].lost
+
+
 def test_template_without_markers_is_an_input_error(scene):
     from rigbuild.track.stage import track_neutral_frame
 

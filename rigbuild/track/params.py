@@ -182,7 +182,8 @@ class TrackParams:
     lost_min_dot_fraction : ... or when fewer painted dots than this fraction of those found on the anchor
         (neutral) frame are found.
     neutral_check_mm : the first frame of a sequence must fit the neutral rigidly within this (90th percentile
-        of the dot residuals, mm).
+        of the residuals of the dots found within ``neutral_check_radius_px`` of the rigid neutral's projections,
+        mm), with at least ``lost_min_dot_fraction`` of the anchor frame's dots found.
     rotation_iterations : Laplacian solves per dot radius, each re-fitting the per-vertex rotations of delta.
     constant_velocity : predict a frame by constant-velocity extrapolation (default: the previous frame).
     dot_consistency : a dot assignment whose displacement from the estimate differs from its mesh
@@ -217,6 +218,7 @@ class TrackParams:
     lost_min_matches: int = 30
     lost_min_dot_fraction: float = 0.6
     neutral_check_mm: float = 3.0
+    neutral_check_radius_px: float = 20.0
     rotation_iterations: int = 2
     constant_velocity: bool = False
     workers: int = 1
@@ -252,6 +254,10 @@ def _check(p: TrackParams) -> TrackParams:
                              fix="give [first, last]: the value at the first and at the last iteration")
     if not p.dot_radius_px:
         raise InputError("params.track.dot_radius_px is empty", path="config", fix="give one radius or more")
+    for name in ("neutral_check_mm", "neutral_check_radius_px"):
+        if not getattr(p, name) > 0:
+            raise InputError(f"params.track.{name} is {getattr(p, name)}", path="config",
+                             fix="give a positive value")
     return p
 
 

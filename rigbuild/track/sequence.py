@@ -244,8 +244,15 @@ class SequenceTracker:
     # ------------------------------------------------------------------ frames
     def rigid_start(self, frames: list[ViewFrame], sequence: str = "") -> np.ndarray:
         """Rigidly place the neutral on the first frame of a sequence from its dots; raise InputError when
-        the first frame is not neutral-like (rigid dot residual above ``neutral_check_mm``)."""
-        m = self.dot_matches(frames, self.neutral, self.p.dot_radius_px[0])
+        the first frame is not neutral-like (rigid dot residual above ``neutral_check_mm``).
+
+        The first assignment predicts the dots by optical flow from the anchor (global neutral) frame's images
+        (:meth:`dot_flow_prediction`, with ``anchor`` and ``dot_flow``): a sequence's rest pose differs from
+        the anchor's by a head motion of several degrees and millimetres, tens of pixels, which trades dots
+        between neighbours in an assignment at the unmoved neutral's projections."""
+        flow_uv = (self.dot_flow_prediction(self.anchor, frames, self.neutral)
+                   if self.anchor is not None and self.p.dot_flow else None)
+        m = self.dot_matches(frames, self.neutral, self.p.dot_radius_px[0], predicted_uv=flow_uv)
         if m.n < 4:
             raise InputError(f"sequence '{sequence}': only {m.n} painted dots found on its first frame",
                              fix="check the images of the sequence's neutral_frame and the dot detector settings")
@@ -254,21 +261,23 @@ class SequenceTracker:
             m2 = self.dot_matches(frames, apply_rigid(self.neutral, R, t), r_px)
             if m2.n >= 4:
                 R, t, _ = self._robust_rigid(m2, self.neutral)
-        # neutral check: every dot found where the rigidly placed neutral predicts it, at the finest radius (the
-        # radius the anchor's dots were counted at; a coarse radius lets a dense dot pattern trade dots between
-        # neighbours in the one-to-one assignment); dots an expression moved away are missing, i.e. misfits
-        m = self.dot_matches(frames, apply_rigid(self.neutral, R, t), self.p.dot_radius_px[-1])
+        # neutral check: the dots found within neutral_check_radius_px of the rigidly placed neutral (a dot an
+        # expression moved by up to about that radius is found there and measured; the finest radius would find
+        # only the dots that did not move) must fit it within neutral_check_mm, and most of the anchor's dots must
+        # be found (a dot the head motion turned away or the light dimmed is not evidence of an expression)
+        m = self.dot_matches(frames, apply_rigid(self.neutral, R, t), self.p.neutral_check_radius_px)
+        if m.n < self.p.lost_min_dot_fraction * self.anchor_dots:
+            raise InputError(
+                f"sequence '{sequence}': its first frame is not neutral-like (only {m.n} of the {self.anchor_dots} "
+                f"painted dots of the neutral frame are found near the rigidly placed neutral)",
+                path="session.yaml", fix=f"set rom[{sequence}].neutral_frame to a frame where the actor is at rest")
         src = np.einsum("nk,nkd->nd", m.bary, self.neutral[self.faces[m.tri]])
         r = np.linalg.norm(apply_rigid(src, R, t) - m.targets, axis=1)
-        # dots seen on the anchor (neutral) frame but not found near the rigid neutral count as misfits
-        missing = max(self.anchor_dots - m.n, 0)
-        r = np.concatenate([r, np.full(missing, np.inf)])
-        rms = float(np.sort(r)[int(np.ceil(0.9 * r.size)) - 1]) if r.size else float("inf")
-        if rms > self.p.neutral_check_mm:
+        p90 = float(np.percentile(r, 90))
+        if p90 > self.p.neutral_check_mm:
             raise InputError(
-                f"sequence '{sequence}': its first frame is not neutral-like (the neutral fits its dots rigidly only "
-                f"to {rms:.2f} mm (90th percentile, dots missing from where the neutral predicts them count as "
-                f"infinite) > {self.p.neutral_check_mm} mm)",
+                f"sequence '{sequence}': its first frame is not neutral-like (the neutral fits its {m.n} dots rigidly "
+                f"only to {p90:.2f} mm (90th percentile) > {self.p.neutral_check_mm} mm)",
                 path="session.yaml", fix=f"set rom[{sequence}].neutral_frame to a frame where the actor is at rest")
         return apply_rigid(self.neutral, R, t)
 
