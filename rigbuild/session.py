@@ -154,6 +154,7 @@ class SessionSpec:
     units: str = "mm"
     template_rig: str = "procedural"
     dot_stencil_mm: float | None = None  # spacing of the painted stencil dots (rigbuild.dots), None: markers only
+    painted_dots: bool = True  # session.yaml ``dots``: ``painted`` (default) or ``none`` (an unpainted face)
     raw: dict[str, Any] = field(default_factory=dict)
 
     # ----------------------------------------------------------------- paths
@@ -281,6 +282,7 @@ def session_from_dict(data: dict[str, Any], root: str | os.PathLike, source: str
         units=str(data.get("units", "mm")),
         template_rig=str(data.get("template_rig", "procedural")),
         dot_stencil_mm=float(data["dot_stencil_mm"]) if data.get("dot_stencil_mm") is not None else None,
+        painted_dots=data.get("dots", "painted") != "none",
         raw=data,
     )
 

@@ -203,3 +203,48 @@ def test_dots_tracked_from_their_own_surface_points(scene, registered):
     V1, _, m1, _ = track_rom_sequence(*args, dot_surface=(full, bary))
     np.testing.assert_array_equal(V0, V1)
     np.testing.assert_array_equal(m0, m1)
+
+
+@pytest.fixture(scope="module")
+def unpainted(scene):
+    """The scene's actor without painted dots: its rest pose, the rest pose turned by 4 degrees and moved by
+    7.5 mm (a sequence's own rest frame), and the expression; (truth vertices (3, V, 3) mm, views per frame)."""
+    from rigbuild.geometry.rigid import apply_rigid
+    from rigbuild.render import TexturedMesh, render_mesh, speckle_texture
+
+    template, actor, verts, frames = scene
+    c = verts[0][actor.face_vertices].mean(0)
+    a = np.radians(4.0)
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    moved = apply_rigid(verts[0] - c, R, c + np.array([6.0, -4.0, 2.0]))
+    truth = np.stack([verts[0], moved, verts[1] - verts[0] + moved])
+    tex = speckle_texture(1024, seed=1)
+    views = []
+    for i in range(3):
+        mesh = TexturedMesh(truth[i], actor.faces, actor.uvs, actor.face_uvs, tex)
+        rr = [render_mesh(v.camera, mesh, noise_sigma=1.0, seed=10 + i) for v in frames[0]]
+        views.append([ViewFrame(v.camera, r.color, r.depth) for v, r in zip(frames[0], rr)])
+    return truth, views
+
+
+def test_unpainted_face_starts_and_tracks_from_image_features(scene, registered, unpainted):
+    """No painted dots (session dots: none -> no features level): a sequence whose rest frame is turned and moved
+    from the anchor's is placed rigidly from SIFT matches against the anchor and tracked by SIFT and flow."""
+    from rigbuild.track.params import unpainted as unpainted_params
+    from rigbuild.track.stage import track_rom_sequence
+
+    template, actor, verts, frames = scene
+    truth, views = unpainted
+    face = template.face_vertices
+    tp = unpainted_params(TrackParams())
+    assert "features" not in tp.levels and tp.registration.coarse == "landmarks"
+    V, _, _, stats = track_rom_sequence(template, registered.vertices, views[0], views[1:], [0, 1], "rom01", tp)
+    err = [np.linalg.norm(V[i][face] - truth[i + 1][face], axis=1).mean() for i in range(2)]
+    reg_err = np.linalg.norm(registered.vertices[face] - verts[0][face], axis=1).mean()
+    print("unpainted: rest", err[0], "expression", err[1], "registration", reg_err, [s.sparse for s in stats])
+    assert not any(s.lost for s in stats) and all(s.dots == 0 for s in stats)
+    assert err[0] < reg_err + 0.3  # the rest frame: the registration's own error, 4 degrees and 7.5 mm away
+    assert err[1] < 1.5
+    with pytest.raises(InputError, match="not neutral-like"):  # starting on the expression
+        track_rom_sequence(template, registered.vertices, views[0], [views[2]], [2], "romX",
+                           unpainted_params(TrackParams(neutral_check_mm=1.0)))

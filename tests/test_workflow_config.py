@@ -74,6 +74,7 @@ def test_unknown_shape_name_is_named(tmp_path):
     ({"board": {"type": "charuco", "squares_x": 7, "squares_y": 5}}, "board"),
     ({"rom": [{"name": "s0", "frames": [5, 3]}]}, "rom.0"),
     ({"colour": "blue"}, "top level"),
+    ({"dots": "unpainted"}, "dots"),
 ])
 def test_malformed_session_yaml_names_file_and_field(tmp_path, override, field):
     folder = _real_session(tmp_path / "s", **override)
@@ -159,3 +160,16 @@ def test_a_technicians_config_plans_only_its_sessions(tmp_path):
     assert r.returncode == 0, r.out[-3000:]
     assert "results/real/report.html" in r.stdout and "rule track_neutral:" in r.stdout
     assert "demo" not in r.stdout and "synth_session" not in r.stdout
+
+
+def test_session_dots_none_is_an_unpainted_face(tmp_path):
+    """session.yaml ``dots: none`` (what the generator writes for ``dots: none``) reads as an unpainted face;
+    absent, the dots are painted."""
+    from rigbuild.session import read_session
+    from rigbuild.synth.session import plan_session
+
+    assert read_session(_real_session(tmp_path / "a")).painted_dots
+    assert not read_session(_real_session(tmp_path / "b", dots="none")).painted_dots
+    plan = plan_session("u", {"dots": "none", "dot_stencil_mm": 16.0})
+    assert plan["dots"] == "none" and "dot_stencil_mm" not in plan
+    assert "dots" not in plan_session("p", {"dot_stencil_mm": 16.0})

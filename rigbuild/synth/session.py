@@ -98,7 +98,8 @@ def plan_session(name: str, synthetic: dict | None) -> dict:
                          for i in range(int(p["performance"]["n"]))],
         "template_rig": str(p["template_rig"]),
         "synthetic": {"seed": int(p["seed"]), "generator": "rigbuild.synth.session"},
-    } | ({"dot_stencil_mm": float(p["dot_stencil_mm"])} if p["dot_stencil_mm"] is not None else {})
+    } | ({"dots": "none"} if p["dots"] == "none" else
+         {"dot_stencil_mm": float(p["dot_stencil_mm"])} if p["dot_stencil_mm"] is not None else {})
 
 
 def planned_files(name: str, synthetic: dict | None) -> list[str]:

@@ -261,6 +261,15 @@ def _check(p: TrackParams) -> TrackParams:
     return p
 
 
+def unpainted(p: TrackParams) -> TrackParams:
+    """The parameters for an unpainted face (session ``dots: none``): the same tracker without the painted-dot
+    level, registered to the neutral from face landmarks (``registration.coarse: landmarks``)."""
+    from dataclasses import replace
+
+    return replace(p, levels=tuple(lv for lv in p.levels if lv != "features"),
+                   registration=replace(p.registration, coarse="landmarks"))
+
+
 def from_config(values: Mapping[str, Any] | None) -> TrackParams:
     """:class:`TrackParams` from ``config["params"]["track"]`` (None or {} = the defaults).
 

@@ -160,11 +160,16 @@ class SequenceTracker:
             self.dot_bary = np.asarray(dot_points[1], np.float64)
             self.marker_local = self.faces[self.dot_tri, np.argmax(self.dot_bary, 1)]  # each dot's nearest vertex
         # dot neighbourhoods along the surface and the dot spacing, for the displacement-consistency test
-        self.dot_nbrs, nd = surface_neighbours(self.neutral, self.faces, self.marker_local, k=self.p.dot_neighbours)
-        first = nd[:, 0][np.isfinite(nd[:, 0])]
+        painted = "features" in self.p.levels and self.marker_local.size > 0
+        if painted:
+            self.dot_nbrs, nd = surface_neighbours(self.neutral, self.faces, self.marker_local,
+                                                   k=self.p.dot_neighbours)
+            first = nd[:, 0][np.isfinite(nd[:, 0])]
+        else:  # an unpainted face (no dots level): no dot neighbourhoods
+            self.dot_nbrs, first = np.full((self.marker_local.size, self.p.dot_neighbours), -1), np.zeros(0)
         self.dot_spacing_mm = float(np.median(first)) if first.size else float("inf")
         self.anchor = Source.build(self.neutral, self.faces, anchor_frames, "anchor") if self.p.anchor else None
-        self.anchor_dots = self.dot_matches(anchor_frames, self.neutral, self.p.dot_radius_px[-1]).n
+        self.anchor_dots = self.dot_matches(anchor_frames, self.neutral, self.p.dot_radius_px[-1]).n if painted else 0
 
     # ------------------------------------------------------------------ levels
     def _vertex_points(self, ids):
@@ -250,6 +255,8 @@ class SequenceTracker:
         (:meth:`dot_flow_prediction`, with ``anchor`` and ``dot_flow``): a sequence's rest pose differs from
         the anchor's by a head motion of several degrees and millimetres, tens of pixels, which trades dots
         between neighbours in an assignment at the unmoved neutral's projections."""
+        if "features" not in self.p.levels:
+            return self._rigid_start_from_features(frames, sequence)
         flow_uv = (self.dot_flow_prediction(self.anchor, frames, self.neutral)
                    if self.anchor is not None and self.p.dot_flow else None)
         m = self.dot_matches(frames, self.neutral, self.p.dot_radius_px[0], predicted_uv=flow_uv)
@@ -279,6 +286,44 @@ class SequenceTracker:
                 f"sequence '{sequence}': its first frame is not neutral-like (the neutral fits its {m.n} dots rigidly "
                 f"only to {p90:.2f} mm (90th percentile) > {self.p.neutral_check_mm} mm)",
                 path="session.yaml", fix=f"set rom[{sequence}].neutral_frame to a frame where the actor is at rest")
+        return apply_rigid(self.neutral, R, t)
+
+    def _rigid_start_from_features(self, frames: list[ViewFrame], sequence: str) -> np.ndarray:
+        """Rigidly place the neutral on the first frame of a sequence from SIFT matches against the anchor
+        (global neutral) frame: the start of an unpainted face (no ``features`` level). The first round searches
+        ``dot_radius_px[0]`` around the unmoved neutral's predictions (a rest pose differs from the anchor's by a
+        head motion of tens of pixels), the schedule's rounds then re-match around the rigid placement. The
+        neutral check: the 90th percentile of the first round's residuals re-matched around the rigid neutral
+        within ``neutral_check_mm``, from at least ``lost_min_matches`` matches per view."""
+        from dataclasses import replace
+
+        if self.anchor is None:
+            raise InputError(f"sequence '{sequence}': an unpainted face (no painted dots) needs the anchor frame "
+                             "to start a sequence", path="config params.track.anchor", fix="set anchor: true")
+        sch = self.p.sparse
+        wide = replace(sch, radius_px=(float(self.p.dot_radius_px[0]),))
+        m = sparse_matches(self.anchor, frames, self.neutral, 0, wide, max_prediction_error_mm=float("inf"),
+                           workers=self.p.workers)
+        need = self.p.lost_min_matches * len(frames)
+        if m.n < max(need, 4):
+            raise InputError(f"sequence '{sequence}': only {m.n} image features of its first frame match the "
+                             f"neutral frame's (at least {need} needed)", path="session.yaml",
+                             fix=f"set rom[{sequence}].neutral_frame to a frame where the actor is at rest")
+        R, t, _ = self._robust_rigid(m, self.neutral)
+        for k in range(len(sch.radius_px)):
+            m = sparse_matches(self.anchor, frames, apply_rigid(self.neutral, R, t), k, sch, workers=self.p.workers)
+            if m.n >= 4:
+                R, t, _ = self._robust_rigid(m, self.neutral)
+        m = sparse_matches(self.anchor, frames, apply_rigid(self.neutral, R, t), 0, sch, workers=self.p.workers)
+        src = np.einsum("nk,nkd->nd", m.bary, self.neutral[self.faces[m.tri]])
+        r = np.linalg.norm(apply_rigid(src, R, t) - m.targets, axis=1)
+        p90 = float(np.percentile(r, 90)) if r.size else float("inf")
+        if m.n < need or p90 > self.p.neutral_check_mm:
+            raise InputError(
+                f"sequence '{sequence}': its first frame is not neutral-like (the neutral fits {m.n} image features "
+                f"rigidly only to {p90:.2f} mm (90th percentile; at most {self.p.neutral_check_mm} mm from at least "
+                f"{need} features))", path="session.yaml",
+                fix=f"set rom[{sequence}].neutral_frame to a frame where the actor is at rest")
         return apply_rigid(self.neutral, R, t)
 
     def _prefetch_detections(self, frames: list[ViewFrame]):
@@ -400,10 +445,9 @@ class SequenceTracker:
         steps = progress_bar(list(zip(frames_per_time, frame_ids)), f"tracking {sequence}", unit="frame")
         for i, (frames, fid) in enumerate(steps):
             if i == 0:
-                est = self.rigid_start(frames, sequence) if "features" in self.p.levels else self.neutral.copy()
+                starts = "features" in self.p.levels or ("sparse" in self.p.levels and self.anchor is not None)
+                est = self.rigid_start(frames, sequence) if starts else self.neutral.copy()
                 srcs = [self.anchor] if self.anchor is not None else []
-                if not srcs:
-                    srcs = []
             else:
                 est = prev + (prev - prev2) if (prev2 is not None and self.p.constant_velocity) else prev.copy()
                 srcs = [sources_prev] + ([self.anchor] if self.anchor is not None else [])

@@ -33,7 +33,7 @@ from rigbuild.errors import InputError
 from rigbuild.rig import Rig
 from rigbuild.track.matches import ViewFrame
 from rigbuild.track.mesh import TrackingMesh, build_tracking_mesh
-from rigbuild.track.params import TrackParams, from_config
+from rigbuild.track.params import TrackParams, from_config, unpainted
 from rigbuild.track.register import NeutralRegistration, register_neutral, require_markers
 from rigbuild.track.sequence import FrameStats, SequenceTracker, neutral_dots, scan_from_depth
 
@@ -103,6 +103,9 @@ def _session(session_dir: str | os.PathLike, cameras_path: str | os.PathLike, pa
 
     tp = from_config(params)
     spec = read_session(Path(session_dir))
+    if not spec.painted_dots:
+        tp = unpainted(tp)
+        log.info("unpainted face (session dots: none): levels %s, neutral registered from landmarks", tp.levels)
     template = load_template(spec, tp)
     return tp, spec, read_cameras(cameras_path), template, painted_dot_vertices(template, spec.dot_stencil_mm)
 
@@ -242,9 +245,9 @@ def track_neutral_frame(template: Rig, frames: list[ViewFrame], params: TrackPar
                         ) -> tuple[NeutralRegistration, TrackingMesh]:
     """Register the template neutral to the neutral frame's reconstruction (depth maps) and painted dots.
 
-    params : :class:`TrackParams` (its ``dots`` detect the dots, its ``registration`` drives
-    :func:`register_neutral`; ``registration.coarse: landmarks`` also finds and triangulates the face landmarks,
-    :func:`rigbuild.track.landmarks3d.neutral_landmarks`); dot_vertices : (D,) template vertices of the painted
+    params : :class:`TrackParams` (its ``dots`` detect the dots, none are used without the ``features`` level;
+    its ``registration`` drives :func:`register_neutral`; ``registration.coarse: landmarks`` also finds and
+    triangulates the face landmarks, :func:`rigbuild.track.landmarks3d.neutral_landmarks`); dot_vertices : (D,) template vertices of the painted
     dots (:func:`rigbuild.dots.painted_dot_vertices`), default the markers; where : the frame, for errors
     ("sequence 'rom01' frame 0").
     """
@@ -255,7 +258,14 @@ def track_neutral_frame(template: Rig, frames: list[ViewFrame], params: TrackPar
         from rigbuild.track.landmarks3d import neutral_landmarks
 
         landmarks = neutral_landmarks(template, [f.camera for f in frames], [f.image for f in frames], where)
-    dots, rays = neutral_dots(frames, p.dots)
+    if "features" in p.levels:
+        dots, rays = neutral_dots(frames, p.dots)
+    elif p.registration.coarse == "dots":
+        raise InputError(f"{where}: without the painted-dot level (levels {list(p.levels)}) the neutral cannot be "
+                         "registered from dots", path="config params.track.registration.coarse",
+                         fix="use coarse: landmarks, or add 'features' to params.track.levels")
+    else:  # an unpainted face: landmarks, closest points and the depth maps alone
+        dots, rays = np.zeros((0, 3)), None
     pts, nrm = scan_from_depth(frames)
     mesh = build_tracking_mesh(template.neutral, template.faces, template.face_region)
     reg = register_neutral(template, pts, nrm, dots, rays, p.registration, mesh=mesh,
