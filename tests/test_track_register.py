@@ -235,6 +235,30 @@ def test_register_neutral_landmark_level_with_unlabeled_dots(head, n_landmarks, 
         register_neutral(head, pts, nrm, dots, params=RegistrationParams(coarse="landmarks"))
 
 
+def test_register_neutral_landmark_level_unpainted(head):
+    """coarse: landmarks with no dots at all (an unpainted face): the landmarks and the scan alone register the
+    template, as well as with the dots (within 0.3 mm), and no dot gets a label or a surface point."""
+    from rigbuild.track.register import LandmarkObservations
+
+    truth, F, pts, nrm = _warped_scan(head)
+    rng = np.random.default_rng(2)
+    n = 150
+    lt = rng.choice(len(F), n, replace=False)
+    lb = rng.dirichlet([2, 2, 2], n)
+    X = np.einsum("nk,nkd->nd", lb, truth[F[lt]]) + rng.normal(0, 0.5, (n, 3))
+    lm = LandmarkObservations(X, F[lt], lb, np.ones(n))
+    face = head.face_vertices
+    params = RegistrationParams(iterations=10, coarse="landmarks")
+    reg = register_neutral(head, pts, nrm, np.zeros((0, 3)), params=params, landmarks=lm)
+    err = np.linalg.norm(reg.vertices[face] - truth[face], axis=1).mean()
+    painted = register_neutral(head, pts, nrm, truth[head.marker_vertices], params=params, landmarks=lm)
+    err_painted = np.linalg.norm(painted.vertices[face] - truth[face], axis=1).mean()
+    print(f"unpainted {err:.3f} mm, with the markers painted {err_painted:.3f} mm")
+    assert err < err_painted + 0.3
+    assert (reg.dot_labels < 0).all() and reg.dot_labels.shape == (head.marker_vertices.size,)
+    assert reg.dot_surface is None or reg.dot_surface[0].shape[0] == 0
+
+
 def test_local_surface_points_round_trip(head):
     """Surface points as full-topology triangle corners (any corner order) map to the tracking mesh's triangles
     and corner order, giving the same 3-D points."""
