@@ -160,6 +160,7 @@ class RegistrationParams:
 
 #: the neutral registration's coarse levels (:class:`RegistrationParams` ``coarse``)
 COARSE_LEVELS = ("dots", "landmarks")
+UNTRACKED = ("shapes", "attach")
 
 
 @dataclass
@@ -198,6 +199,9 @@ class TrackParams:
         snakemake rule passes its ``threads``.
     confidence_scale : the per-vertex confidence (:meth:`SequenceTracker.confidence`) reaches 1 - 1/e where
         the match weight on the vertex is this fraction of the frame's median.
+    untracked : how the mesh parts outside the tracked skin (teeth, gums, tongue, eyeballs, lashes) follow:
+        ``shapes`` posed by the template's expression shapes fitted to the tracked face under a rigid head motion
+        (:mod:`rigbuild.track.complete`), ``attach`` moved with their nearest tracked vertices.
     """
 
     template_rig: str | None = None
@@ -227,6 +231,7 @@ class TrackParams:
     dot_flow: bool = True
     dot_flow_scale: float = 0.5
     confidence_scale: float = 0.5
+    untracked: str = "shapes"
 
     def template_for(self, spec) -> str:
         """The template rig spec to track with: ``template_rig``, else the session's (a SessionSpec)."""
@@ -254,6 +259,9 @@ def _check(p: TrackParams) -> TrackParams:
                              fix="give [first, last]: the value at the first and at the last iteration")
     if not p.dot_radius_px:
         raise InputError("params.track.dot_radius_px is empty", path="config", fix="give one radius or more")
+    if p.untracked not in UNTRACKED:
+        raise InputError(f"unknown params.track.untracked '{p.untracked}'", path="config params.track.untracked",
+                         fix=f"use one of {list(UNTRACKED)}")
     for name in ("neutral_check_mm", "neutral_check_radius_px"):
         if not getattr(p, name) > 0:
             raise InputError(f"params.track.{name} is {getattr(p, name)}", path="config",

@@ -305,11 +305,26 @@ def track_rom_sequence(template: Rig, neutral_vertices: np.ndarray, anchor_frame
     tracker = SequenceTracker(mesh.local(neutral_vertices), mesh.faces, mk_local, anchor_frames, params,
                               mesh.vertex_tri, mesh.vertex_corner, dot_points=points)
     V, C, stats = tracker.track(frames, frame_ids, sequence, progress=progress)
-    full = np.stack([mesh.to_full(v, neutral_vertices) for v in V]).astype(np.float32)
+    full = np.stack([mesh.to_full(v, neutral_vertices) for v in V])
+    if (params or TrackParams()).untracked == "shapes" and mesh.untracked.size and template.n_shapes:
+        full = pose_untracked(template, mesh, neutral_vertices, full)
+    full = full.astype(np.float32)
     conf = np.zeros((V.shape[0], template.n_vertices), np.float32)
     conf[:, mesh.vertex_ids] = C
     markers = full[:, template.marker_vertices].astype(np.float64)
     return full, conf, markers, stats
+
+
+def pose_untracked(template: Rig, mesh: TrackingMesh, neutral_vertices: np.ndarray, full: np.ndarray) -> np.ndarray:
+    """Tracked full meshes (F, V, 3) mm with the vertices outside the tracking mesh posed by the template's shapes
+    (:func:`rigbuild.track.complete.complete_untracked`), the shapes carried onto the registered neutral
+    ``neutral_vertices`` (V, 3) mm by the similarity of the template's face region onto it."""
+    from rigbuild.geometry.rigid import fit_similarity
+    from rigbuild.track.complete import complete_untracked, shapes_in_world
+
+    face = template.face_vertices
+    sim = fit_similarity(template.neutral[face], np.asarray(neutral_vertices, np.float64)[face])
+    return complete_untracked(full, neutral_vertices, shapes_in_world(template.deltas, sim), face, mesh.untracked)
 
 
 def local_surface_points(mesh: TrackingMesh, vertices: np.ndarray, bary: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
