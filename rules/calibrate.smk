@@ -23,6 +23,7 @@ rule calibrate:
         per_camera="results/{session}/calib/reprojection_per_camera.csv",
         residuals_png=report("results/{session}/calib/residuals.png", category="Calibration"),
         layout_png=report("results/{session}/calib/camera_layout.png", category="Calibration"),
+        detections=directory("results/{session}/calib/detections"),  # one board-detection picture per camera
         metrics="results/{session}/calib/calib_metrics.json",
     params:
         calibrate=lambda wc: config["params"].get("calibrate", {}),

@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 from rigbuild.calibrate.detect import detect_images, session_images
+from rigbuild.calibrate.pictures import detection_files
 from rigbuild.calibrate.session import OUTPUT_FILES
 from rigbuild.calibrate.stage import run_calibrate
 from rigbuild.synth.calibration_scene import render_calibration_session
@@ -84,6 +85,10 @@ def test_outputs_written(calibrated):
     assert not [p for p in results.iterdir() if p.name.startswith(".calib")]  # no staging left
     est = read_cameras(results / "calib" / "cameras.json")
     assert [c.id for c in est] == [c.id for c in cams]
+    for cam, rel in zip(est, detection_files([c.id for c in est])):  # a board-detection picture per camera
+        pic = cv2.imread(str(results / "calib" / rel))
+        assert pic is not None and pic.shape[:2] == (cam.height, cam.width), rel
+        assert 40 < pic[pic.shape[0] // 2:].mean() < 200  # the camera's own image, dimmed, under the drawing
     flat = flatten_metrics(gather_metrics([results / "calib" / "calib_metrics.json",
                                            results / "eval" / "calibration_metrics.json"]))
     for key in ("calibration.rms_px", "calibration.focal_error_pct", "calibration.center_error_mm",
@@ -249,8 +254,9 @@ def test_rms_gate_writes_every_output_with_status_fail_then_fails(session, tmp_p
     out = tmp_path / "out"
     with pytest.raises(QualityGateError, match=r"(?s)cam0\d: RMS .* worst images calib/cam0\d/\d+\.png.*calib_diagnostics"):
         run_calibrate(session[0], out / "calib", {"max_rms_px": 0.03}, workers=2)
+    pictures = detection_files([c.id for c in read_cameras(out / "calib" / "cameras.json")])
     for folder in ("calib", "calib_diagnostics"):
-        for rel in OUTPUT_FILES:
+        for rel in [*OUTPUT_FILES, *pictures]:
             assert (out / folder / rel).stat().st_size > 0, (folder, rel)
     m = read_metrics(out / "calib_diagnostics" / "calib_metrics.json")["calibration"]
     assert m["status"] == "fail" and "RMS above params.calibrate.max_rms_px" in m["gate"] and m["n_gate_failures"] == 1

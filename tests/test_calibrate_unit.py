@@ -361,3 +361,33 @@ def test_intrinsics_sd_with_priors_and_a_tied_aspect_ratio():
     for c in tied.cameras:
         s = tied.intrinsics_sd()[c.id]
         assert np.isfinite(s).all() and s[1] == pytest.approx(s[0] * c.K[1, 1] / c.K[0, 0])
+
+
+def test_image_coverage_counts_grid_cells_reached():
+    from rigbuild.calibrate.pictures import covered_cells, image_coverage
+
+    uv = np.array([[0.0, 0.0], [79.0, 59.0], [np.nan, 5.0], [-3.0, 10.0], [200.0, 10.0]])
+    grid = covered_cells(uv, 80, 60, (8, 6))
+    assert grid.shape == (6, 8) and grid.sum() == 2 and grid[0, 0] and grid[5, 7]
+    assert image_coverage(uv, 80, 60, (8, 6)) == pytest.approx(2 / 48)
+    # the pixel centres of every cell's middle reach every cell
+    us, vs = np.meshgrid(np.arange(5, 80, 10), np.arange(5, 60, 10))
+    assert image_coverage(np.stack([us.ravel(), vs.ravel()], 1), 80, 60, (8, 6)) == 1.0
+
+
+def test_detection_picture_draws_corners_reprojections_and_header():
+    from rigbuild.calibrate.pictures import draw_detections
+
+    img = np.zeros((80, 100), np.uint8)
+    det, rep = np.array([[50.0, 50.0]]), np.array([[20.0, 60.0]])
+    pic = draw_detections(img, 100, 80, det, rep, det, "cam00")
+    assert pic.shape == (80, 100, 3) and pic.dtype == np.uint8
+    b, g, r = (int(x) for x in pic[50, 55])  # on the green ring of radius 5 around the detection
+    assert g > 150 and g > 2 * max(b, r)
+    b, g, r = (int(x) for x in pic[60, 20])  # the red cross at the reprojection
+    assert r > 150 and r > 2 * max(b, g)
+    assert pic[:10].max() == 255  # white header text on its black band
+    # cells the corners never reached are shaded red; the detection's own cell is not
+    assert pic[70, 5, 2] > 0 and pic[70, 5, 1] == 0 and pic[45, 55, 2] == 0
+    small = draw_detections(None, 1000, 800, det * 10, rep * 10, det * 10, "cam00", max_width=500)
+    assert small.shape == (400, 500, 3)

@@ -6,7 +6,7 @@ so a failure - bad input or a QA gate - leaves nothing half-written):
 - ``cameras.json`` (rigbuild.io.cameras schema, as the generator writes it; world = reference camera frame, mm)
 - ``colmap/cameras.txt, images.txt, points3D.txt`` (board corners as 3-D points, loadable by pycolmap)
 - ``reprojection_per_image.csv``, ``reprojection_per_camera.csv``
-- ``residuals.png``, ``camera_layout.png``
+- ``residuals.png``, ``camera_layout.png``, ``detections/<cam>.jpg`` (:mod:`rigbuild.calibrate.pictures`)
 - ``calib_metrics.json``: the metrics fragment ``{"calibration": {...}}`` (no ground truth; the
   ``eval_calibration`` rule compares ``cameras.json`` with the ground truth): ``status`` (pass / fail of the
   RMS and convergence gates), plausibility flags, held-out reprojection RMS (:mod:`rigbuild.calibrate.heldout`)
@@ -34,6 +34,7 @@ from rigbuild.calibrate import qa
 from rigbuild.calibrate.heldout import heldout_errors, split_views
 from rigbuild.calibrate.intrinsics import calibrate_intrinsics, calibration_flags, given_intrinsics
 from rigbuild.calibrate.params import CalibrationOptions, from_config
+from rigbuild.calibrate.pictures import detection_files, write_detection_pictures
 from rigbuild.calibrate.rig import KnownIntrinsics, RigCalibration, calibrate_rig
 from rigbuild.errors import InputError, QualityGateError
 from rigbuild.io.atomic import write_text
@@ -282,10 +283,18 @@ def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
     return m
 
 
-def write_outputs(result: RigCalibration, out_dir: str | os.PathLike, session: str) -> dict[str, Any]:
+def output_files(result: RigCalibration) -> list[str]:
+    """Every file :func:`write_outputs` writes, relative to the calib folder."""
+    return [*OUTPUT_FILES, *detection_files([c.id for c in result.cameras])]
+
+
+def write_outputs(result: RigCalibration, out_dir: str | os.PathLike, session: str,
+                  session_root: str | os.PathLike | None = None) -> dict[str, Any]:
     """Write every calibration output into ``out_dir`` (staged, then moved; see module doc).
 
-    Returns the metrics written to ``calib_metrics.json`` (the ``calibration`` block of the fragment).
+    session_root : the session folder, whose calibration images the detection pictures are drawn on (None: on
+    a grey canvas). Returns the metrics written to ``calib_metrics.json`` (the ``calibration`` block of the
+    fragment).
     """
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -304,8 +313,9 @@ def write_outputs(result: RigCalibration, out_dir: str | os.PathLike, session: s
         write_text(stage / "reprojection_per_camera.csv", _csv_text(result.per_camera_rows()))
         plot_residuals(result, stage / "residuals.png")
         plot_camera_layout(result, stage / "camera_layout.png")
+        write_detection_pictures(result, stage, session_root)
         write_metrics_fragment(stage / "calib_metrics.json", "calibration", metrics)
-        for rel in OUTPUT_FILES:
+        for rel in output_files(result):
             dst = out_dir / rel
             dst.parent.mkdir(parents=True, exist_ok=True)
             os.replace(stage / rel, dst)

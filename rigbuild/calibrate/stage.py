@@ -30,17 +30,17 @@ def run_calibrate(session_dir: str | os.PathLike, out_dir: str | os.PathLike,
     Returns the ``calibration`` metrics; raises QualityGateError after writing when the gate fails
     (``gate: fail``).
     """
-    from rigbuild.calibrate.session import OUTPUT_FILES, calibrate_session, write_outputs
+    from rigbuild.calibrate.session import calibrate_session, output_files, write_outputs
 
     opt = from_config(params)
     spec, result = calibrate_session(session_dir, opt, workers)
-    metrics = write_outputs(result, out_dir, spec.name)
+    metrics = write_outputs(result, out_dir, spec.name, spec.root)
     if not result.gate_failures:
         return metrics
     out_dir = Path(out_dir)
     keep = out_dir.parent / f"{out_dir.name}_diagnostics"
     shutil.rmtree(keep, ignore_errors=True)
-    for rel in OUTPUT_FILES:
+    for rel in output_files(result):
         (keep / rel).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(out_dir / rel, keep / rel)
     text = "\n".join(result.gate_failures) + f"\n  every output was written (status fail); a copy is in {keep}"

@@ -40,11 +40,10 @@ class Pictures:
     caption: str = ""
 
 
-#: the stages' pictures; ``calib/detections/``, ``reconstruct/*/renders/`` and per-camera tracking overlays are
-#: shown once the stages write them (per camera / per sequence)
+#: the stages' pictures (globs under results/<s>/)
 PICTURES = {
     "calibration": Pictures([("calib/residuals.png", 1), ("calib/camera_layout.png", 1)],
-                            [("calib/detections/*.png", 64)],
+                            [("calib/detections/*.jpg", 64)],
                             "Reprojection residuals per camera and the camera layout: re-shoot cameras whose RMS "
                             "fails; below, the board detections per camera."),
     "reconstruction": Pictures([("reconstruct/*/coverage.png", 1)],
