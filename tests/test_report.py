@@ -251,6 +251,7 @@ def test_pictures_are_embedded_downscaled_as_jpeg(tmp_path):
     page = build_report(tmp_path, "s1", {"calibration": {"rms_px": 0.1}}, image_width=400)
     assert page.count("data:image/jpeg;base64,") == 1 and "data:image/png" not in page
     assert "calib/residuals.png</figcaption>" in _section(page, "calibration")
+    assert '<a href="calib/residuals.png"><img' in page  # the thumbnail links to the full-size file beside the page
 
 
 def test_a_gate_measured_without_a_limit_is_shown_but_judges_nothing(tmp_path):

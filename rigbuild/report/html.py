@@ -50,8 +50,9 @@ PICTURES = {
                                [("reconstruct/*/renders/*.png", 8), ("reconstruct/*/coverage/*.png", 2)],
                                "Per-frame coverage of the multi-view stereo (fraction of the face seen by 2+ "
                                "views); below, depth and mesh renders and the first frames' coverage per sequence."),
-    "tracking": Pictures([("track/*/residuals.png", 1)], [("track/*/overlay/*.png", 24)],
-                         "Tracking residual over time per sequence; below, the tracked mesh over the images."),
+    "tracking": Pictures([("track/*/residuals.png", 1)], [("track/*/overlay/*.jpg", 24)],
+                         "Tracking residual over time per sequence; below, the tracked mesh over every camera's "
+                         "image (first, most deformed and last frame)."),
     "personalization": Pictures([("personalize/convergence.png", 1), ("personalize/heatmaps/overview.png", 1)],
                                 [("personalize/heatmaps/*.png", 200)],
                                 "EM objective per iteration (must not increase) and the change of every shape "

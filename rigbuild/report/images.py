@@ -26,7 +26,9 @@ def jpeg_bytes(path: Path, width: int, quality: int) -> bytes:
 
 
 def figure(path: Path, caption: str, width: int, quality: int) -> str:
-    """A ``<figure>`` with the downscaled picture and its caption (the path under the results folder)."""
+    """A ``<figure>`` with the downscaled picture, linked to the full-size file, and its caption: ``caption``
+    is the file's path under the results folder, which holds the page, so the link is that path."""
     data = base64.b64encode(jpeg_bytes(path, width, quality)).decode("ascii")
-    return (f'<figure><img alt="{html.escape(caption)}" loading="lazy" src="data:image/jpeg;base64,{data}">'
-            f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+    c = html.escape(caption)
+    return (f'<figure><a href="{c}"><img alt="{c}" loading="lazy" src="data:image/jpeg;base64,{data}"></a>'
+            f"<figcaption>{c}</figcaption></figure>")

@@ -1,4 +1,4 @@
-"""Figures of the tracking stage: the per-frame residual plot and the mesh/marker overlays on a view."""
+"""Figures of the tracking stage: the per-frame residual plot and the mesh/marker overlays on every view."""
 
 from __future__ import annotations
 
@@ -36,9 +36,10 @@ def residual_plot(path: str | os.PathLike, rows: list[dict], title: str) -> None
     plt.close(fig)
 
 
-def draw_overlay(path: str | os.PathLike, view: ViewFrame, vertices: np.ndarray, markers: np.ndarray,
-                 face_vertices: np.ndarray) -> None:
-    """A view's image with every 7th face-region vertex (green dots) and the markers (red circles) drawn.
+def overlay_view(view: ViewFrame, vertices: np.ndarray, markers: np.ndarray, face_vertices: np.ndarray,
+                 width: int | None = None) -> np.ndarray:
+    """A view's image (H, W, 3) uint8 BGR with every 7th face-region vertex (green dots), the markers (red
+    circles) and the camera id drawn, scaled to ``width`` px (None: as captured).
 
     vertices (V, 3) mm, markers (M, 3) mm in the view's world; face_vertices (R,) template vertex ids."""
     import cv2
@@ -51,5 +52,31 @@ def draw_overlay(path: str | os.PathLike, view: ViewFrame, vertices: np.ndarray,
     mk = cam.project(markers)
     for u, v in mk[np.isfinite(mk).all(1)]:
         cv2.circle(img, (int(round(u)), int(round(v))), 4, (0, 0, 255), 1)
-    with atomic_path(Path(path), suffix=".png") as tmp:
-        cv2.imwrite(str(tmp), img)
+    if width is not None and width != img.shape[1]:
+        img = cv2.resize(img, (width, round(img.shape[0] * width / img.shape[1])), interpolation=cv2.INTER_AREA)
+    cv2.putText(img, cam.id, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2, cv2.LINE_AA)
+    return img
+
+
+def tile(images: list[np.ndarray], columns: int) -> np.ndarray:
+    """Images of one size (H, W, 3) in a grid of ``columns`` (row-major; empty cells black)."""
+    h, w = images[0].shape[:2]
+    rows = -(-len(images) // columns)
+    sheet = np.zeros((rows * h, columns * w, 3), np.uint8)
+    for k, img in enumerate(images):
+        r, c = divmod(k, columns)
+        sheet[r * h:(r + 1) * h, c * w:(c + 1) * w] = img
+    return sheet
+
+
+def draw_overlay(path: str | os.PathLike, views: list[ViewFrame], vertices: np.ndarray, markers: np.ndarray,
+                 face_vertices: np.ndarray, tile_width: int = 640, quality: int = 90) -> None:
+    """One frame's :func:`overlay_view` on every camera, tiled (at most 4 columns, each view at most
+    ``tile_width`` px wide), written as JPEG to ``path``."""
+    import cv2
+
+    width = min(tile_width, views[0].camera.width)
+    sheet = tile([overlay_view(v, vertices, markers, face_vertices, width) for v in views], min(4, len(views)))
+    with atomic_path(Path(path), suffix=".jpg") as tmp:
+        if not cv2.imwrite(str(tmp), sheet, [cv2.IMWRITE_JPEG_QUALITY, int(quality)]):
+            raise OSError(f"could not write {path}")

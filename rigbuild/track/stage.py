@@ -174,7 +174,7 @@ def _write_sequence_outputs(outputs: Mapping[str, str], template: Rig, fps: floa
     ov.mkdir(parents=True, exist_ok=True)
     peak = int(np.argmax([np.abs(V[i] - V[0]).max() for i in range(len(V))]))
     for i in sorted({0, peak, len(V) - 1}):
-        draw_overlay(ov / f"{frame_ids[i]:06d}.png", frames[i][0], V[i], markers[i], template.face_vertices)
+        draw_overlay(ov / f"{frame_ids[i]:06d}.jpg", frames[i], V[i], markers[i], template.face_vertices)
 
 
 def run_track_sequence(session: str, session_dir: str | os.PathLike, cameras_path: str | os.PathLike,
