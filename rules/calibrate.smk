@@ -31,7 +31,7 @@ rule calibrate:
         "logs/{session}/calib/calibrate.log",
     benchmark:
         "results/{session}/benchmarks/calibrate.tsv"
-    threads: 2  # board detection, one process per core
+    threads: 2  # board detection, one thread per core
     resources:
         mem_mb=2000,
     conda:

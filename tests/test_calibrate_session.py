@@ -41,7 +41,7 @@ def session(tmp_path_factory):
 
 def run_calibration(folder, out_dir, params, eval_path=None) -> dict:
     """rule calibrate, then (synthetic session) rule eval_calibration; the two metric blocks merged."""
-    metrics = run_calibrate(folder, out_dir, params, workers=2)  # the rule's 2 threads: 2 detection processes
+    metrics = run_calibrate(folder, out_dir, params, workers=2)  # the rule's 2 threads: 2 detection threads
     if eval_path is not None:
         metrics = {**metrics, **run_eval_calibration(Path(out_dir) / "cameras.json",
                                                      Path(folder) / "ground_truth" / "cameras.json", eval_path)}
@@ -206,12 +206,12 @@ def test_a_bad_calibration_image_is_named_and_nothing_is_written(session, tmp_pa
     corrupt(s / "calib" / image)
     out = tmp_path / "out"
     with pytest.raises(InputError, match=message) as err:
-        run_calibrate(s, out / "calib", {}, workers=2)  # raised in a detection process, re-raised whole
+        run_calibrate(s, out / "calib", {}, workers=2)  # raised on a detection thread, re-raised as in one
     assert err.value.path.endswith(image) and err.value.fix
     _assert_nothing_written(out)
 
 
-def test_detection_in_two_processes_equals_one(session):
+def test_detection_on_two_threads_equals_one(session):
     from rigbuild.calibrate.detect import detect_paths
 
     spec = read_session(session[0])

@@ -245,16 +245,20 @@ def _detect_path(job: tuple) -> Detection:
 def detect_paths(paths: Iterable[str | os.PathLike], board: BoardSpec, image_size: tuple[int, int] | None = None,
                  subpix_window: int | None = None, workers: int = 1, label: str = "board detection"
                  ) -> list[Detection]:
-    """:func:`detect_board` on each image file, in order, in ``workers`` forked processes when > 1 (ArUco and
-    chessboard detection run on one core each; images are independent). Errors (:func:`read_gray`) are raised
-    as in one process, naming the file."""
-    import multiprocessing as mp
+    """:func:`detect_board` on each image file, in order, on ``workers`` threads when > 1 (ArUco and
+    chessboard detection run on one core each and OpenCV releases the GIL, so images are detected side by
+    side). Errors (:func:`read_gray`) are raised as in one thread, naming the file.
 
+    Threads, not processes: a child forked from a process whose OpenCV thread pool (or any other thread) was
+    running can wait forever inside OpenCV (seen in the test suite: a forked child hung in ``detectBoard``),
+    and a spawned one would re-run a Snakemake script's top level."""
     jobs = [(p, board, image_size, subpix_window) for p in paths]
     workers = int(min(max(workers, 1), len(jobs)))
-    if workers > 1 and "fork" in mp.get_all_start_methods():
-        with mp.get_context("fork").Pool(workers) as pool:
-            return list(progress(pool.imap(_detect_path, jobs), label, total=len(jobs), unit="image"))
+    if workers > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="detect") as pool:
+            return list(progress(pool.map(_detect_path, jobs), label, total=len(jobs), unit="image"))
     return [_detect_path(j) for j in progress(jobs, label, total=len(jobs), unit="image")]
 
 
@@ -265,7 +269,7 @@ def detect_images(
     subpix_window: int | None = None,
     workers: int = 1,
 ) -> dict[str, dict[str, Detection]]:
-    """Detect the board in every image (:func:`detect_paths`, ``workers`` processes).
+    """Detect the board in every image (:func:`detect_paths`, ``workers`` threads).
 
     images : camera id -> view key -> image path. The view key names the board pose: images of
         different cameras with the same key were taken at the same instant (synchronized capture).

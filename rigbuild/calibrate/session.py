@@ -73,7 +73,7 @@ def no_board_error(spec: SessionSpec, images: Mapping[str, Mapping[str, Path]], 
 def known_intrinsics(spec: SessionSpec, params: CalibrationOptions, workers: int = 1) -> dict[str, KnownIntrinsics]:
     """camera id -> intrinsics known before the rig fit: session.yaml ``intrinsics:`` (source ``given``),
     else Zhang's method on the camera's own ``calib_intrinsics/<cam>/`` images (source ``images``, with the
-    stage's model options; detected in ``workers`` processes). Cameras with neither are absent (their
+    stage's model options; detected on ``workers`` threads). Cameras with neither are absent (their
     intrinsics come from the rig footage)."""
     out = {c: KnownIntrinsics(K, d, "given") for c, (K, d) in
            given_intrinsics(spec.raw.get("intrinsics"), spec.root, spec.cameras).items()}
@@ -111,7 +111,7 @@ def calibrate_session(session_dir: str | os.PathLike, params: CalibrationOptions
 
     params : the stage's parameters (a mapping goes through :func:`rigbuild.calibrate.params.from_config`;
         None = defaults).
-    workers : processes for the board detection (:func:`rigbuild.calibrate.detect.detect_paths`).
+    workers : threads for the board detection (:func:`rigbuild.calibrate.detect.detect_paths`).
     Raises InputError (bad images, a board spec that matches no image) or QualityGateError (too few images,
     cameras not linked). The RMS and convergence gates do not raise: ``result.gate_failures`` lists them
     (:func:`rigbuild.calibrate.stage.run_calibrate` writes the outputs, then fails). With

@@ -26,7 +26,7 @@ def run_calibrate(session_dir: str | os.PathLike, out_dir: str | os.PathLike,
     ``{"calibration": {...}}``).
 
     params : the raw ``config["params"]["calibrate"]`` block (checked by :func:`from_config`).
-    workers : processes for the board detection (the rule's threads).
+    workers : threads for the board detection (the rule's threads).
     Returns the ``calibration`` metrics; raises QualityGateError after writing when the gate fails
     (``gate: fail``).
     """
