@@ -311,20 +311,22 @@ def test_points_flow_recovers_a_large_shift():
 
 
 def test_overlay_sheet_shows_every_camera(tmp_path):
-    """Issue 24: a frame's tracking overlay tiles every camera's view (at most 4 columns), each with the
-    tracked vertices (green), the markers (red) and its camera id."""
+    """Issue 24: a frame's tracking overlay tiles every camera's view (rows of at most 4, evenly filled), each
+    with the tracked vertices (green), the markers (red) and its camera id."""
     from rigbuild.track.plots import draw_overlay
 
-    views = [ViewFrame(_cam(f"c{k}", center=(20.0 * k, 0, -500)), np.full((240, 320, 3), 60, np.uint8),
-                     np.full((240, 320), 500.0, np.float32)) for k in range(6)]
     V = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
-    draw_overlay(tmp_path / "f.jpg", views, V, np.array([[0.0, 20.0, 0.0]]), np.array([0, 1]))
-    sheet = cv2.imread(str(tmp_path / "f.jpg"))
-    assert sheet.shape == (2 * 240, 4 * 320, 3)
-    for k in range(6):  # each tile: the camera id at top left, the vertex 0 drawn where that camera sees it
-        r, c = divmod(k, 4)
-        tile = sheet[r * 240:(r + 1) * 240, c * 320:(c + 1) * 320].astype(int)
-        u, v = np.round(views[k].camera.project(V[:1])[0]).astype(int)
-        assert tile[v, u, 1] > 150 and tile[v, u, 1] > tile[v, u, 2] + 60
-        assert tile[8:28, 8:40].max() > 200
-    assert sheet[240:, 2 * 320:].max() < 20  # empty cells stay black
+    for n, (rows, cols) in ((6, (2, 3)), (8, (2, 4)), (5, (2, 3)), (3, (1, 3))):
+        views = [ViewFrame(_cam(f"c{k}", center=(20.0 * k, 0, -500)), np.full((240, 320, 3), 60, np.uint8),
+                           np.full((240, 320), 500.0, np.float32)) for k in range(n)]
+        draw_overlay(tmp_path / "f.jpg", views, V, np.array([[0.0, 20.0, 0.0]]), np.array([0, 1]))
+        sheet = cv2.imread(str(tmp_path / "f.jpg"))
+        assert sheet.shape == (rows * 240, cols * 320, 3), n
+        for k in range(n):  # each tile: the camera id at top left, the vertex 0 drawn where that camera sees it
+            r, c = divmod(k, cols)
+            tile = sheet[r * 240:(r + 1) * 240, c * 320:(c + 1) * 320].astype(int)
+            u, v = np.round(views[k].camera.project(V[:1])[0]).astype(int)
+            assert tile[v, u, 1] > 150 and tile[v, u, 1] > tile[v, u, 2] + 60
+            assert tile[8:28, 8:40].max() > 200
+        if n == 5:
+            assert sheet[240:, 2 * 320:].max() < 20  # the empty cell stays black

@@ -71,12 +71,13 @@ def tile(images: list[np.ndarray], columns: int) -> np.ndarray:
 
 def draw_overlay(path: str | os.PathLike, views: list[ViewFrame], vertices: np.ndarray, markers: np.ndarray,
                  face_vertices: np.ndarray, tile_width: int = 640, quality: int = 90) -> None:
-    """One frame's :func:`overlay_view` on every camera, tiled (at most 4 columns, each view at most
-    ``tile_width`` px wide), written as JPEG to ``path``."""
+    """One frame's :func:`overlay_view` on every camera, tiled in as few rows of at most 4 views as fit them,
+    evenly filled (6 views: 2 rows of 3), each view at most ``tile_width`` px wide; written as JPEG to ``path``."""
     import cv2
 
     width = min(tile_width, views[0].camera.width)
-    sheet = tile([overlay_view(v, vertices, markers, face_vertices, width) for v in views], min(4, len(views)))
+    rows = -(-len(views) // 4)
+    sheet = tile([overlay_view(v, vertices, markers, face_vertices, width) for v in views], -(-len(views) // rows))
     with atomic_path(Path(path), suffix=".jpg") as tmp:
         if not cv2.imwrite(str(tmp), sheet, [cv2.IMWRITE_JPEG_QUALITY, int(quality)]):
             raise OSError(f"could not write {path}")
