@@ -118,16 +118,14 @@ def reconstruct_frame(images: Sequence[np.ndarray | None], cameras: Sequence[Cam
     agree = stereo_consistency(raw, pcams, check)
     cons = consistency_filter(raw, pcams, check, params.consistency_abs_mm, params.consistency_rel,
                               params.min_views, params.threads)
-    pts, nrm, col = [], [], []
-    for i, cam in enumerate(pcams):
+    def normals_and_colours(i: int):
         vv, uu = cons.pixels[i][:, 0], cons.pixels[i][:, 1]
-        n = pixel_normals(cons.point_maps[i], cam, vv, uu)
-        pts.append(cons.points[i])
-        nrm.append(n)
-        col.append(_rgb01(und[i][0])[vv, uu])
-    P = np.concatenate(pts) if pts else np.zeros((0, 3))
-    N = np.concatenate(nrm) if nrm else np.zeros((0, 3))
-    C = np.concatenate(col) if col else np.zeros((0, 3))
+        return pixel_normals(cons.point_maps[i], pcams[i], vv, uu), _rgb01(und[i][0])[vv, uu]
+
+    nc = _map_views(normals_and_colours, len(pcams), params.threads)
+    P = np.concatenate(cons.points) if nc else np.zeros((0, 3))
+    N = np.concatenate([n for n, _ in nc]) if nc else np.zeros((0, 3))
+    C = np.concatenate([c for _, c in nc]) if nc else np.zeros((0, 3))
     P, N, C = voxel_average(P, params.point_voxel_mm, N, C)
     N = normalize_rows(N)
     good = np.linalg.norm(N, axis=1) > 0
