@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -46,27 +46,23 @@ def image_coverage(uv: np.ndarray, width: int, height: int, cells: tuple[int, in
     return float(covered_cells(uv, width, height, cells).mean())
 
 
-def draw_detections(image: np.ndarray | None, width: int, height: int, detected: np.ndarray,
+def draw_detections(gray: np.ndarray | None, width: int, height: int, detected: np.ndarray,
                     reprojected: np.ndarray, all_detected: np.ndarray, header: str,
                     max_width: int = 960) -> np.ndarray:
     """The detection picture (h, w, 3) uint8 BGR, scaled to at most ``max_width`` px wide.
 
-    image : the camera's image (H, W) or (H, W, 3), uint8 or uint16, or None (a grey canvas of width x height).
+    gray : the camera's image (height, width) uint8 as the detector read it, or None (a grey canvas).
     detected, reprojected : (N, 2) px of the shown image's corners and their reprojection by the rig.
     all_detected : (M, 2) px of every corner the camera detected (coverage).
     """
     import cv2
 
-    if image is None:
-        canvas = np.full((height, width, 3), 96, np.uint8)
-    else:
-        img = np.asarray(image)
-        if img.dtype == np.uint16:
-            img = (img / 257.0).astype(np.uint8)
-        canvas = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img[..., :3].copy()
     s = min(1.0, max_width / float(width))
-    if s < 1.0:
-        canvas = cv2.resize(canvas, (round(width * s), round(height * s)), interpolation=cv2.INTER_AREA)
+    size = (round(width * s), round(height * s))
+    if gray is None:
+        canvas = np.full((size[1], size[0], 3), 96, np.uint8)
+    else:
+        canvas = cv2.cvtColor(cv2.resize(gray, size, interpolation=cv2.INTER_AREA), cv2.COLOR_GRAY2BGR)
     canvas = (canvas.astype(np.float32) * 0.6).astype(np.uint8)
     h, w = canvas.shape[:2]
     grid = covered_cells(all_detected, width, height)
@@ -94,13 +90,17 @@ def draw_detections(image: np.ndarray | None, width: int, height: int, detected:
     return canvas
 
 
-def write_detection_pictures(result, out_dir: str | os.PathLike, session_root: str | os.PathLike | None = None,
+def write_detection_pictures(result, out_dir: str | os.PathLike,
+                             image_paths: Mapping[str, Mapping[str, str | os.PathLike]] | None = None,
                              quality: int = 90) -> list[str]:
     """One :func:`draw_detections` picture per camera of a :class:`rigbuild.calibrate.rig.RigCalibration`
-    into ``out_dir/detections/<cam>.jpg``; the images are read from ``session_root`` / the result's image
-    names (a grey canvas where that fails). Returns the paths written, relative to ``out_dir``."""
+    into ``out_dir/detections/<cam>.jpg``. image_paths : camera id -> view key -> the calibration image
+    (:func:`rigbuild.calibrate.detect.session_images`), read as the detector reads it (a grey canvas where
+    none is given or it cannot be read). Returns the paths written, relative to ``out_dir``."""
     import cv2
 
+    from rigbuild.calibrate.detect import read_gray
+    from rigbuild.errors import InputError
     from rigbuild.io.atomic import atomic_path
 
     out_dir = Path(out_dir)
@@ -116,9 +116,12 @@ def write_detection_pictures(result, out_dir: str | os.PathLike, session_root: s
             sel = mine[result.obs.view[mine] == best]
             detected = result.obs.uv[sel]
             reprojected = cam.project(result.corner_world(result.obs.view[sel], result.obs.corner[sel]))
-            name = result.image_names.get(cam.id, {}).get(result.view_keys[best])
-            if session_root is not None and name is not None:
-                image = cv2.imread(str(Path(session_root) / name), cv2.IMREAD_UNCHANGED)
+            path = (image_paths or {}).get(cam.id, {}).get(result.view_keys[best])
+            if path is not None:
+                try:
+                    image = read_gray(path, (cam.width, cam.height))
+                except InputError:
+                    image = None
         uv = result.obs.uv[mine]
         header = (f"{cam.id}: {len(views)} images used, {len(result.dropped.get(cam.id, []))} dropped, "
                   f"{len(mine)} corners, RMS {rms.get(cam.id, float('nan')):.3f} px, "

@@ -34,7 +34,7 @@ from rigbuild.calibrate import qa
 from rigbuild.calibrate.heldout import heldout_errors, split_views
 from rigbuild.calibrate.intrinsics import calibrate_intrinsics, calibration_flags, given_intrinsics
 from rigbuild.calibrate.params import CalibrationOptions, from_config
-from rigbuild.calibrate.pictures import detection_files, write_detection_pictures
+from rigbuild.calibrate.pictures import DETECTIONS_DIR, detection_files, write_detection_pictures
 from rigbuild.calibrate.rig import KnownIntrinsics, RigCalibration, calibrate_rig
 from rigbuild.errors import InputError, QualityGateError
 from rigbuild.io.atomic import write_text
@@ -284,17 +284,19 @@ def calibration_metrics(result: RigCalibration) -> dict[str, Any]:
 
 
 def output_files(result: RigCalibration) -> list[str]:
-    """Every file :func:`write_outputs` writes, relative to the calib folder."""
-    return [*OUTPUT_FILES, *detection_files([c.id for c in result.cameras])]
+    """Every file :func:`write_outputs` writes, relative to the calib folder, in the order they are moved into
+    place: the metrics fragment last."""
+    last = "calib_metrics.json"
+    return [*(f for f in OUTPUT_FILES if f != last), *detection_files([c.id for c in result.cameras]), last]
 
 
 def write_outputs(result: RigCalibration, out_dir: str | os.PathLike, session: str,
-                  session_root: str | os.PathLike | None = None) -> dict[str, Any]:
+                  image_paths: Mapping[str, Mapping[str, str | os.PathLike]] | None = None) -> dict[str, Any]:
     """Write every calibration output into ``out_dir`` (staged, then moved; see module doc).
 
-    session_root : the session folder, whose calibration images the detection pictures are drawn on (None: on
-    a grey canvas). Returns the metrics written to ``calib_metrics.json`` (the ``calibration`` block of the
-    fragment).
+    image_paths : camera id -> view key -> calibration image (:func:`session_images`), the detection pictures'
+    backgrounds (None: a grey canvas). Returns the metrics written to ``calib_metrics.json`` (the
+    ``calibration`` block of the fragment).
     """
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -313,8 +315,9 @@ def write_outputs(result: RigCalibration, out_dir: str | os.PathLike, session: s
         write_text(stage / "reprojection_per_camera.csv", _csv_text(result.per_camera_rows()))
         plot_residuals(result, stage / "residuals.png")
         plot_camera_layout(result, stage / "camera_layout.png")
-        write_detection_pictures(result, stage, session_root)
+        write_detection_pictures(result, stage, image_paths)
         write_metrics_fragment(stage / "calib_metrics.json", "calibration", metrics)
+        shutil.rmtree(out_dir / DETECTIONS_DIR, ignore_errors=True)  # no picture of a camera no longer in the rig
         for rel in output_files(result):
             dst = out_dir / rel
             dst.parent.mkdir(parents=True, exist_ok=True)

@@ -30,11 +30,12 @@ def run_calibrate(session_dir: str | os.PathLike, out_dir: str | os.PathLike,
     Returns the ``calibration`` metrics; raises QualityGateError after writing when the gate fails
     (``gate: fail``).
     """
+    from rigbuild.calibrate.detect import session_images
     from rigbuild.calibrate.session import calibrate_session, output_files, write_outputs
 
     opt = from_config(params)
     spec, result = calibrate_session(session_dir, opt, workers)
-    metrics = write_outputs(result, out_dir, spec.name, spec.root)
+    metrics = write_outputs(result, out_dir, spec.name, session_images(spec))
     if not result.gate_failures:
         return metrics
     out_dir = Path(out_dir)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import html
 from pathlib import Path
+from urllib.parse import quote
 
 import cv2
 
@@ -30,5 +31,5 @@ def figure(path: Path, caption: str, width: int, quality: int) -> str:
     is the file's path under the results folder, which holds the page, so the link is that path."""
     data = base64.b64encode(jpeg_bytes(path, width, quality)).decode("ascii")
     c = html.escape(caption)
-    return (f'<figure><a href="{c}"><img alt="{c}" loading="lazy" src="data:image/jpeg;base64,{data}"></a>'
-            f"<figcaption>{c}</figcaption></figure>")
+    return (f'<figure><a href="{html.escape(quote(caption))}"><img alt="{c}" loading="lazy" '
+            f'src="data:image/jpeg;base64,{data}"></a><figcaption>{c}</figcaption></figure>')

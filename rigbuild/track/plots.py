@@ -38,22 +38,26 @@ def residual_plot(path: str | os.PathLike, rows: list[dict], title: str) -> None
 
 def overlay_view(view: ViewFrame, vertices: np.ndarray, markers: np.ndarray, face_vertices: np.ndarray,
                  width: int | None = None) -> np.ndarray:
-    """A view's image (H, W, 3) uint8 BGR with every 7th face-region vertex (green dots), the markers (red
-    circles) and the camera id drawn, scaled to ``width`` px (None: as captured).
+    """A view's image (H, W, 3) uint8 BGR, scaled to ``width`` px (None: as captured), with every 7th
+    face-region vertex (green dots), the markers (red circles) and the camera id drawn at that scale.
 
     vertices (V, 3) mm, markers (M, 3) mm in the view's world; face_vertices (R,) template vertex ids."""
     import cv2
 
-    img = np.ascontiguousarray(view.image[..., ::-1]).copy()
+    img = view.image[..., ::-1]
     cam = view.camera
-    pts = cam.project(vertices[face_vertices[::7]])
-    for u, v in pts[np.isfinite(pts).all(1)]:
-        cv2.circle(img, (int(round(u)), int(round(v))), 1, (0, 200, 0), -1)
-    mk = cam.project(markers)
-    for u, v in mk[np.isfinite(mk).all(1)]:
-        cv2.circle(img, (int(round(u)), int(round(v))), 4, (0, 0, 255), 1)
-    if width is not None and width != img.shape[1]:
-        img = cv2.resize(img, (width, round(img.shape[0] * width / img.shape[1])), interpolation=cv2.INTER_AREA)
+    s = 1.0 if width is None else width / img.shape[1]
+    img = cv2.resize(img, (width, round(img.shape[0] * s)), interpolation=cv2.INTER_AREA) if s != 1.0 \
+        else np.ascontiguousarray(img)
+
+    def px(X):
+        uv = cam.project(X)
+        return np.round((uv[np.isfinite(uv).all(1)] + 0.5) * s - 0.5).astype(int)
+
+    for u, v in px(vertices[face_vertices[::7]]):
+        cv2.circle(img, (u, v), 1, (0, 200, 0), -1)
+    for u, v in px(markers):
+        cv2.circle(img, (u, v), 4, (0, 0, 255), 1)
     cv2.putText(img, cam.id, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2, cv2.LINE_AA)
     return img
 
