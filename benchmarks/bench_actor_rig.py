@@ -38,7 +38,7 @@ import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import print_table, write_result  # noqa: E402
+from common import CACHE, cached_session, print_table, write_result  # noqa: E402
 
 from rigbuild.eval.retarget import marker_map_errors, retarget_metrics  # noqa: E402
 from rigbuild.io.markers import read_markers  # noqa: E402
@@ -50,23 +50,14 @@ from rigbuild.retarget.common import lowpass_markers  # noqa: E402
 from rigbuild.retarget.params import ActorRigParams, actor_rig_from_config  # noqa: E402
 from rigbuild.synth.session import generate_mocap_only  # noqa: E402
 
-CACHE = Path(__file__).resolve().parent / "out" / "cache"
 TIERS = {"ict_dev": "config/ict-dev.yaml", "ict": "config/ict.yaml", "ict_b": "config/ict-b.yaml",
          "demo": "config/config.yaml"}
 
 
 def tier_session(name: str) -> Path:
-    """The tier's markers-only session (cached by the config's synthetic block)."""
-    cfg = yaml.safe_load((PROJECT_ROOT / TIERS[name]).read_text())
-    synthetic = cfg["sessions"][name]["synthetic"]
-    out = CACHE / name
-    key = yaml.safe_dump(synthetic, sort_keys=True)
-    if not (out / "key.yaml").exists() or (out / "key.yaml").read_text() != key:
-        t0 = time.perf_counter()
-        generate_mocap_only(out, name, synthetic)
-        (out / "key.yaml").write_text(key)
-        print(f"{name}: markers-only session generated in {time.perf_counter() - t0:.0f} s")
-    return out
+    """The tier's markers-only session (cached by the config's synthetic block and the generator's sources)."""
+    synthetic = yaml.safe_load((PROJECT_ROOT / TIERS[name]).read_text())["sessions"][name]["synthetic"]
+    return cached_session(CACHE / name, synthetic, lambda out: generate_mocap_only(out, name, synthetic))
 
 
 def run(session: Path, which: str, p: ActorRigParams) -> dict:
