@@ -90,6 +90,7 @@ def coverage_tiles(rec: FrameReconstruction, tile_width: int = 320) -> np.ndarra
     written on it."""
     import cv2
 
+    from rigbuild.montage import tile_images
     from rigbuild.reconstruct.stereo import to_gray_float
 
     tiles = []
@@ -108,14 +109,7 @@ def coverage_tiles(rec: FrameReconstruction, tile_width: int = 320) -> np.ndarra
         cv2.putText(t, f"{cam.id} {100 * cov:.1f}%", (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 1,
                     cv2.LINE_AA)
         tiles.append(t)
-    cols = min(4, len(tiles))
-    rows = int(np.ceil(len(tiles) / cols))
-    h, w = tiles[0].shape[:2]
-    out = np.zeros((rows * h, cols * w, 3), np.uint8)
-    for k, t in enumerate(tiles):
-        r, c = divmod(k, cols)
-        out[r * h:(r + 1) * h, c * w:(c + 1) * w] = t
-    return out
+    return tile_images(tiles, min(4, len(tiles)))
 
 
 def coverage_plot(path: Path, frames: Sequence[int], camera_ids: Sequence[str], coverage: np.ndarray,

@@ -62,26 +62,18 @@ def overlay_view(view: ViewFrame, vertices: np.ndarray, markers: np.ndarray, fac
     return img
 
 
-def tile(images: list[np.ndarray], columns: int) -> np.ndarray:
-    """Images of one size (H, W, 3) in a grid of ``columns`` (row-major; empty cells black)."""
-    h, w = images[0].shape[:2]
-    rows = -(-len(images) // columns)
-    sheet = np.zeros((rows * h, columns * w, 3), np.uint8)
-    for k, img in enumerate(images):
-        r, c = divmod(k, columns)
-        sheet[r * h:(r + 1) * h, c * w:(c + 1) * w] = img
-    return sheet
-
-
 def draw_overlay(path: str | os.PathLike, views: list[ViewFrame], vertices: np.ndarray, markers: np.ndarray,
                  face_vertices: np.ndarray, tile_width: int = 640, quality: int = 90) -> None:
     """One frame's :func:`overlay_view` on every camera, tiled in as few rows of at most 4 views as fit them,
     evenly filled (6 views: 2 rows of 3), each view at most ``tile_width`` px wide; written as JPEG to ``path``."""
     import cv2
 
+    from rigbuild.montage import tile_images
+
     width = min(tile_width, views[0].camera.width)
     rows = -(-len(views) // 4)
-    sheet = tile([overlay_view(v, vertices, markers, face_vertices, width) for v in views], -(-len(views) // rows))
+    views_drawn = [overlay_view(v, vertices, markers, face_vertices, width) for v in views]
+    sheet = tile_images(views_drawn, -(-len(views) // rows))
     with atomic_path(Path(path), suffix=".jpg") as tmp:
         if not cv2.imwrite(str(tmp), sheet, [cv2.IMWRITE_JPEG_QUALITY, int(quality)]):
             raise OSError(f"could not write {path}")
