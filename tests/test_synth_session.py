@@ -137,3 +137,26 @@ def test_dot_stencil_spacing_reaches_session_yaml(tmp_path):
     assert "dot_stencil_mm" not in plain and session_from_dict(plain, tmp_path).dot_stencil_mm is None
     with pytest.raises(InputError, match="dot_stencil_mm"):
         session_from_dict({**plan, "dot_stencil_mm": -2}, tmp_path)
+
+
+def test_render_sequences_renders_those_sequences_as_the_full_session_has_them(tiny_session, tmp_path):
+    """``rom.render_sequences: [1]`` holds rom01 only, with the images and ground truth the full session has for it
+    (the shapes are still planned over both sequences); a bad index fails naming the key."""
+    from rigbuild.errors import InputError
+    from rigbuild.synth.session import check_synthetic
+
+    only = {**TINY, "rom": {**TINY["rom"], "render_sequences": [1]}}
+    generate_session(tmp_path / "one", "tiny", only)
+    spec = read_session(tmp_path / "one")
+    assert [s.name for s in spec.rom] == ["rom01"]
+    assert not (tmp_path / "one" / "rom" / "rom00").exists()
+    for cam in spec.cameras:
+        for f in spec.rom[0].frames:
+            a = (tmp_path / "one" / "rom" / "rom01" / cam / f"{f:06d}.png").read_bytes()
+            assert a == (tiny_session / "rom" / "rom01" / cam / f"{f:06d}.png").read_bytes()
+    with np.load(tmp_path / "one" / "ground_truth" / "rom" / "rom01.npz") as z1, \
+            np.load(tiny_session / "ground_truth" / "rom" / "rom01.npz") as z2:
+        np.testing.assert_array_equal(z1["weights"], z2["weights"])
+        np.testing.assert_array_equal(z1["vertices"], z2["vertices"])
+    with pytest.raises(InputError, match="render_sequences"):
+        check_synthetic({**TINY, "rom": {**TINY["rom"], "render_sequences": [2]}}, "sessions.s.synthetic")

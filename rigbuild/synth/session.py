@@ -56,7 +56,7 @@ SYNTH_DEFAULTS: dict[str, Any] = {
               "marker_size_mm": 18.0, "dictionary": "DICT_5X5_100"},
     "rom": {"n_sequences": 4, "frames_per_sequence": 9, "coverage": 2, "peak_range": [1.0, 1.0],
             "max_rotation_deg": 2.0, "max_translation_mm": 3.0, "hold_frames": None, "head_bound": "per_axis",
-            "neutral_pose_deg": 0.0, "neutral_pose_mm": 0.0},
+            "neutral_pose_deg": 0.0, "neutral_pose_mm": 0.0, "render_sequences": None},
     # marker_placement_sd_mm: hand placement of the mocap markers along the skin; occlusion: gaps where fewer
     # than min_cameras cameras of the rig see a marker (with gap_fraction's random gaps on top)
     "performance": {"n": 1, "duration_s": 10.0, "fps": 30.0, "noise_mm": 0.2, "gap_fraction": 0.01,
@@ -81,10 +81,25 @@ def synth_params(synthetic: dict | None) -> dict:
     return _merge(SYNTH_DEFAULTS, synthetic or {})
 
 
+def rendered_sequences(p: dict, where: str = "synthetic") -> list[int]:
+    """Indices of the ROM sequences a session holds (``rom.render_sequences``, default all ``n_sequences``): the
+    shapes are planned over all ``n_sequences`` either way, so a benchmark can render a few of a tier's
+    sequences exactly as the tier has them."""
+    n_seq = int(p["rom"]["n_sequences"])
+    wanted = p["rom"].get("render_sequences")
+    if wanted is None:
+        return list(range(n_seq))
+    bad = [int(s) for s in wanted if not 0 <= int(s) < n_seq]
+    if bad or len(set(wanted)) != len(wanted) or not wanted:
+        raise InputError(f"field '{where}.rom.render_sequences' is {list(wanted)}", path="config",
+                         fix=f"list sequence indices, each once, in 0..{n_seq - 1} (rom.n_sequences {n_seq}), "
+                             "or leave render_sequences out")
+    return sorted(int(s) for s in wanted)
+
+
 def plan_session(name: str, synthetic: dict | None) -> dict:
     """The ``session.yaml`` dict a synthetic session will have (cameras, sequences, performances)."""
     p = synth_params(synthetic)
-    n_seq = int(p["rom"]["n_sequences"])
     F = int(p["rom"]["frames_per_sequence"])
     return {
         "name": name,
@@ -93,7 +108,7 @@ def plan_session(name: str, synthetic: dict | None) -> dict:
         "image_size": [int(p["image_size"][0]), int(p["image_size"][1])],
         "fps": float(p["performance"]["fps"]),
         "board": dict(p["board"]),
-        "rom": [{"name": f"rom{s:02d}", "frames": [0, F - 1], "neutral_frame": 0} for s in range(n_seq)],
+        "rom": [{"name": f"rom{s:02d}", "frames": [0, F - 1], "neutral_frame": 0} for s in rendered_sequences(p)],
         "performances": [{"name": f"perf{i:02d}", "file": f"performances/perf{i:02d}.c3d"}
                          for i in range(int(p["performance"]["n"]))],
         "template_rig": str(p["template_rig"]),
@@ -373,12 +388,13 @@ def _render_rom(gt: Path, spec, p: dict, actor, cameras: list, face_centre: np.n
     seed = int(p["seed"])
     rom_cfg = p["rom"]
     holds = None if rom_cfg["hold_frames"] is None else tuple(int(x) for x in rom_cfg["hold_frames"])
-    seqs = make_rom_weights(actor.shape_names, len(spec.rom), int(rom_cfg["frames_per_sequence"]),
+    seqs = make_rom_weights(actor.shape_names, int(rom_cfg["n_sequences"]), int(rom_cfg["frames_per_sequence"]),
                             seed=seed + 2, coverage=int(rom_cfg["coverage"]),
                             peak_range=tuple(float(x) for x in rom_cfg["peak_range"]), hold_frames=holds)
     n_images = 0
     with _BackgroundWriter() as writer:
-        for s, (seq, Wseq) in enumerate(progress_bar(list(zip(spec.rom, seqs)), "ROM images", unit="sequence")):
+        planned = [(s, seq, seqs[s]) for s, seq in zip(rendered_sequences(p), spec.rom)]
+        for s, seq, Wseq in progress_bar(planned, "ROM images", unit="sequence"):
             R, t = make_head_motion(Wseq.shape[0], seed=seed + 100 + s,
                                     max_rotation_deg=float(rom_cfg["max_rotation_deg"]),
                                     max_translation_mm=float(rom_cfg["max_translation_mm"]),
@@ -475,6 +491,7 @@ def check_synthetic(synthetic: dict | None, where: str) -> dict:
     if r["head_bound"] not in ("per_axis", "total"):
         raise InputError(f"field '{where}.rom.head_bound' is {r['head_bound']!r}", path="config",
                          fix="use per_axis or total")
+    rendered_sequences(p, where)
     if r["hold_frames"] is not None:
         lo, hi = (int(x) for x in r["hold_frames"])
         if not 1 <= lo <= hi:
