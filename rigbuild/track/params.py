@@ -131,6 +131,15 @@ class RegistrationParams:
         matched one to one (within ``stencil_gate_mm`` of the current mesh) to a stencil site (a painted dot
         vertex of the template) pulls that vertex with this weight: the hand paints near the site, so the
         stencil is a prior, weighted below the unlabeled-dot term; 0 = no prior.
+    stencil_warp : after the non-rigid iterations, slide the mesh along its surface by this fraction of the smooth
+        part of the dots' offsets from their stencil sites (dots matched one to one within ``stencil_gate_mm``,
+        averaged by a Gaussian of ``stencil_smoothing_mm`` over the sites, wrong matches left out): a hand
+        places each dot a few mm off its site in a random direction, so single dots are no correspondences, but
+        their local mean is; the scan decides the normal direction. One step (repeated steps drift away again,
+        docs/decisions.md); 0 = off (the papers' registration). At the ``landmarks``
+        level the fitted landmarks take part in the mean as points of zero offset (weight
+        ``stencil_landmark_weight`` x reliability), so that the eyelids and lips, where no dots are painted,
+        keep what the landmarks gave them.
     dot_surface_points : ``dots`` level only: each detected dot on the skin is tracked from its own closest point
         on the registered neutral (within the last gate) instead of from its stencil vertex, as the ``landmarks``
         level always does; for a ``dot_weight`` low enough that the registration does not pin each vertex to its dot.
@@ -155,6 +164,9 @@ class RegistrationParams:
     stencil_prior_weight: float = 0.0
     feature_dot_weight: float = 1.0  # chosen on bench_track's registration scene (ICT actor seed 5, sigma 2 mm)
     stencil_gate_mm: float = 6.0
+    stencil_warp: float = 0.0
+    stencil_smoothing_mm: float = 30.0
+    stencil_landmark_weight: float = 0.3
     dot_surface_points: bool = False
 
 

@@ -28,6 +28,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
 
 from rigbuild.errors import InputError
 from rigbuild.geometry.rigid import apply_rigid, fit_similarity
@@ -390,6 +391,60 @@ def _dot_rms(p: np.ndarray, mk_local: np.ndarray, terms: _DotTerms, faces: np.nd
     return float(np.sqrt(np.mean(np.sum((p[mk_local[terms.has_dot]] - terms.dot_targets) ** 2, 1))))
 
 
+def smooth_stencil_offsets(sites: np.ndarray, offsets: np.ndarray, sigma_mm: float, outlier_mads: float = 3.0,
+                           weights: np.ndarray | None = None) -> np.ndarray:
+    """The smooth part of the offsets of matched dots from their stencil sites.
+
+    sites (N, 3) mm: the sites on the current mesh; offsets (N, 3) mm: each matched dot minus its site. A hand
+    places each dot a few mm off its site in a random direction, while the mesh's own error varies slowly over
+    the face: a Gaussian-weighted mean over sites (``sigma_mm``, 3-D distance) keeps the slow part and averages
+    the placement error down. Matches whose offset departs from their neighbours' mean by more than
+    ``outlier_mads`` robust deviations (a false detection, a dot given to the wrong site) are left out of the
+    mean (one pass). Returns (N, 3) mm."""
+    x = np.asarray(sites, np.float64).reshape(-1, 3)
+    r = np.asarray(offsets, np.float64).reshape(-1, 3)
+    if len(x) == 0:
+        return r.copy()
+    w = np.exp(-cdist(x, x, "sqeuclidean") / (2.0 * sigma_mm**2))
+    if weights is not None:
+        w = w * np.asarray(weights, np.float64)[None, :]
+    keep = np.ones(len(x), bool)
+    for _ in range(2):
+        wk = w * keep[None, :]
+        mean = wk @ r / np.maximum(wk.sum(1, keepdims=True), 1e-12)
+        dev = np.linalg.norm(r - mean, axis=1)
+        mad = np.median(dev[keep]) if keep.any() else 0.0
+        keep = dev <= outlier_mads * max(1.4826 * mad, 1e-6)
+    return mean
+
+
+def _stencil_warp(p: np.ndarray, mesh: TrackingMesh, mk_local: np.ndarray, dots: np.ndarray,
+                  params: RegistrationParams, anchors: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                  ) -> np.ndarray:
+    """Slide the tracking-mesh vertices ``p`` (T, 3) mm along the surface by the smooth part of the painted dots'
+    offsets from their stencil sites (dots matched one to one within ``stencil_gate_mm``;
+    :func:`smooth_stencil_offsets` at the sites, spread to every vertex by the same Gaussian), times
+    ``stencil_warp``; the normal part is left to the scan. ``anchors``: (points (A, 3) mm on the mesh, their
+    offsets (A, 3) mm, weights (A,)) taking part in the mean beside the dots (weight 1 each)."""
+    from rigbuild.track.laplacian import vertex_normals
+
+    at = np.where((mk_local >= 0)[:, None], p[np.maximum(mk_local, 0)], np.nan)
+    labels = relabel_dots(at, dots, params.stencil_gate_mm)
+    has = (labels >= 0) & (mk_local >= 0)
+    if has.sum() < 4:
+        return p
+    x, r, sw = at[has], dots[labels[has]] - at[has], np.ones(int(has.sum()))
+    if anchors is not None:
+        x, r, sw = (np.concatenate([a, b]) for a, b in zip((x, r, sw), anchors))
+    field = smooth_stencil_offsets(x, r, params.stencil_smoothing_mm, weights=sw)
+    w = np.exp(-cdist(p, x, "sqeuclidean") / (2.0 * params.stencil_smoothing_mm**2)) * sw[None, :]
+    cover = np.minimum(w.sum(1, keepdims=True), 1.0)
+    move = (w @ field) / np.maximum(w.sum(1, keepdims=True), 1e-12) * cover  # fades out away from the dots
+    n = vertex_normals(p, mesh.faces)
+    move -= np.sum(move * n, 1, keepdims=True) * n
+    return p + params.stencil_warp * move
+
+
 def _with_stencil_prior(terms: _DotTerms, p: np.ndarray, mesh: TrackingMesh, mk_local: np.ndarray,
                         dots: np.ndarray, params: RegistrationParams) -> _DotTerms:
     """``terms`` plus the stencil prior: dots matched one to one to the painted dot vertices of ``p`` (gate
@@ -574,6 +629,8 @@ def register_neutral(
         p, row = _nonrigid_step(p, it, params, solver, mesh, tree, scan_points, scan_normals, terms, mk_local,
                                 depth_views)
         history.append(row)
+    if params.stencil_warp > 0:
+        p = _stencil_warp(p, mesh, mk_local, dots, params)
     full = mesh.to_full(p, aligned_full)
     return NeutralRegistration(
         vertices=full, markers=full[template.marker_vertices], similarity=(s, R, t), dot_labels=labels,
@@ -641,6 +698,11 @@ def _register_from_landmarks(template: Rig, scan_points: np.ndarray, scan_normal
                                 depth_views, faces=mesh.faces)
         row["landmarks"], row["dots_used"] = int(lm_tri.size), int(terms.dot_tri.size - lm_tri.size)
         history.append(row)
+    if params.stencil_warp > 0:
+        lm_at = np.einsum("nk,nkd->nd", lm_bary, p[mesh.faces[lm_tri]])
+        # the landmarks are fitted already: zero offsets there, weighed by their reliability
+        anchors = (lm_at, np.zeros_like(lm_at), params.stencil_landmark_weight * lm.weight)
+        p = _stencil_warp(p, mesh, mk_local, dots, params, anchors)
     full = mesh.to_full(p, aligned_full)
     at_dots = np.where((mk_local >= 0)[:, None], p[np.maximum(mk_local, 0)], np.nan)
     labels = relabel_dots(at_dots, dots, params.relabel_gate_mm)  # read off the mesh, for the sequence tracker
