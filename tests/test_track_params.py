@@ -64,3 +64,12 @@ def test_registration_params_are_register_neutral_defaults():
     names = set(inspect.signature(register_neutral).parameters)
     assert names == {"template", "scan_points", "scan_normals", "dots", "rays", "params", "mesh", "depth_views",
                      "dot_vertices", "landmarks"}
+
+
+def test_stencil_warp_needs_a_positive_window():
+    from rigbuild.errors import InputError
+    from rigbuild.track.params import from_config
+
+    with pytest.raises(InputError, match="stencil_smoothing_mm"):
+        from_config({"registration": {"stencil_warp": 1.0, "stencil_smoothing_mm": 0.0}})
+    assert from_config({"registration": {"stencil_warp": 0.0, "stencil_smoothing_mm": 0.0}})

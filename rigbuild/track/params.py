@@ -274,6 +274,9 @@ def _check(p: TrackParams) -> TrackParams:
     if p.untracked not in UNTRACKED:
         raise InputError(f"unknown params.track.untracked '{p.untracked}'", path="config params.track.untracked",
                          fix=f"use one of {list(UNTRACKED)}")
+    if p.registration.stencil_warp > 0 and not p.registration.stencil_smoothing_mm > 0:
+        raise InputError(f"params.track.registration.stencil_smoothing_mm is {p.registration.stencil_smoothing_mm}",
+                         path="config", fix="give the stencil warp's window in mm (> 0), or stencil_warp: 0")
     for name in ("neutral_check_mm", "neutral_check_radius_px"):
         if not getattr(p, name) > 0:
             raise InputError(f"params.track.{name} is {getattr(p, name)}", path="config",

@@ -392,15 +392,17 @@ def _dot_rms(p: np.ndarray, mk_local: np.ndarray, terms: _DotTerms, faces: np.nd
 
 
 def smooth_stencil_offsets(sites: np.ndarray, offsets: np.ndarray, sigma_mm: float, outlier_mads: float = 3.0,
-                           weights: np.ndarray | None = None) -> np.ndarray:
+                           weights: np.ndarray | None = None, anchor: np.ndarray | None = None) -> np.ndarray:
     """The smooth part of the offsets of matched dots from their stencil sites.
 
     sites (N, 3) mm: the sites on the current mesh; offsets (N, 3) mm: each matched dot minus its site. A hand
     places each dot a few mm off its site in a random direction, while the mesh's own error varies slowly over
     the face: a Gaussian-weighted mean over sites (``sigma_mm``, 3-D distance) keeps the slow part and averages
     the placement error down. Matches whose offset departs from their neighbours' mean by more than
-    ``outlier_mads`` robust deviations (a false detection, a dot given to the wrong site) are left out of the
-    mean (one pass). Returns (N, 3) mm."""
+    ``outlier_mads`` x 1.4826 x the median departure of the matches (a false detection, a dot given to the
+    wrong site) are left out of the mean (one pass). ``weights`` (N,): each row's weight in the means;
+    ``anchor`` (N,) bool: rows that are no matches (fixed points) and are never left out nor counted in the
+    median. Returns (N, 3) mm."""
     x = np.asarray(sites, np.float64).reshape(-1, 3)
     r = np.asarray(offsets, np.float64).reshape(-1, 3)
     if len(x) == 0:
@@ -408,14 +410,13 @@ def smooth_stencil_offsets(sites: np.ndarray, offsets: np.ndarray, sigma_mm: flo
     w = np.exp(-cdist(x, x, "sqeuclidean") / (2.0 * sigma_mm**2))
     if weights is not None:
         w = w * np.asarray(weights, np.float64)[None, :]
-    keep = np.ones(len(x), bool)
-    for _ in range(2):
-        wk = w * keep[None, :]
-        mean = wk @ r / np.maximum(wk.sum(1, keepdims=True), 1e-12)
-        dev = np.linalg.norm(r - mean, axis=1)
-        mad = np.median(dev[keep]) if keep.any() else 0.0
-        keep = dev <= outlier_mads * max(1.4826 * mad, 1e-6)
-    return mean
+    fixed = np.zeros(len(x), bool) if anchor is None else np.asarray(anchor, bool)
+    mean = w @ r / np.maximum(w.sum(1, keepdims=True), 1e-12)
+    dev = np.linalg.norm(r - mean, axis=1)
+    mad = np.median(dev[~fixed]) if (~fixed).any() else 0.0
+    keep = fixed | (dev <= outlier_mads * max(1.4826 * mad, 1e-6))
+    wk = w * keep[None, :]
+    return wk @ r / np.maximum(wk.sum(1, keepdims=True), 1e-12)
 
 
 def _stencil_warp(p: np.ndarray, mesh: TrackingMesh, mk_local: np.ndarray, dots: np.ndarray,
@@ -434,9 +435,11 @@ def _stencil_warp(p: np.ndarray, mesh: TrackingMesh, mk_local: np.ndarray, dots:
     if has.sum() < 4:
         return p
     x, r, sw = at[has], dots[labels[has]] - at[has], np.ones(int(has.sum()))
+    fixed = np.zeros(len(x), bool)
     if anchors is not None:
         x, r, sw = (np.concatenate([a, b]) for a, b in zip((x, r, sw), anchors))
-    field = smooth_stencil_offsets(x, r, params.stencil_smoothing_mm, weights=sw)
+        fixed = np.concatenate([fixed, np.ones(len(anchors[0]), bool)])
+    field = smooth_stencil_offsets(x, r, params.stencil_smoothing_mm, weights=sw, anchor=fixed)
     w = np.exp(-cdist(p, x, "sqeuclidean") / (2.0 * params.stencil_smoothing_mm**2)) * sw[None, :]
     cover = np.minimum(w.sum(1, keepdims=True), 1.0)
     move = (w @ field) / np.maximum(w.sum(1, keepdims=True), 1e-12) * cover  # fades out away from the dots
@@ -631,6 +634,8 @@ def register_neutral(
         history.append(row)
     if params.stencil_warp > 0:
         p = _stencil_warp(p, mesh, mk_local, dots, params)
+        at = np.where((mk_local >= 0)[:, None], p[np.maximum(mk_local, 0)], np.nan)
+        labels = relabel_dots(at, dots, params.relabel_gate_mm)  # the labels of the warped mesh
     full = mesh.to_full(p, aligned_full)
     return NeutralRegistration(
         vertices=full, markers=full[template.marker_vertices], similarity=(s, R, t), dot_labels=labels,
