@@ -43,22 +43,15 @@ ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(HERE))
 
+from bench_reconstruct_realistic import TIERS  # noqa: E402
 from common import CACHE, _git, cached_session, print_table, write_result  # noqa: E402
 
-TIERS = {"ict_dev": ("config/ict-dev.yaml", "ict_dev"), "ict": ("config/ict.yaml", "ict")}
+from rigbuild.synth.session import _merge as merge  # noqa: E402  (the config blocks' deep merge)
 RENDERED = [0, 1]
 BUILTIN = {"config": {}, "dots": {"levels": ["features"]}, "dots+sift": {"levels": ["features", "sparse"]},
            "unpainted": "unpainted"}
 KEYS = ("neutral_error_mm", "mean_error_mm", "p95_error_mm", "end_drift_mm", "visible_mean_error_mm",
         "corr_mean_error_mm", "lips_mean_error_mm", "eyelids_mean_error_mm")
-
-
-def merge(base: dict, over: dict) -> dict:
-    """``over`` merged into a copy of ``base`` (nested dicts merged, everything else replaced)."""
-    out = copy.deepcopy(base)
-    for k, v in over.items():
-        out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
-    return out
 
 
 def tier_scene(name: str) -> Path:

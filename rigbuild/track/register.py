@@ -391,6 +391,12 @@ def _dot_rms(p: np.ndarray, mk_local: np.ndarray, terms: _DotTerms, faces: np.nd
     return float(np.sqrt(np.mean(np.sum((p[mk_local[terms.has_dot]] - terms.dot_targets) ** 2, 1))))
 
 
+def site_positions(p: np.ndarray, mk_local: np.ndarray) -> np.ndarray:
+    """The painted dot vertices' positions (D, 3) mm on tracking-mesh vertices ``p`` (T, 3); rows of vertices off the
+    tracking mesh (``mk_local`` -1) are NaN, which :func:`relabel_dots` never assigns."""
+    return np.where((mk_local >= 0)[:, None], p[np.maximum(mk_local, 0)], np.nan)
+
+
 def smooth_stencil_offsets(sites: np.ndarray, offsets: np.ndarray, sigma_mm: float, outlier_mads: float = 3.0,
                            weights: np.ndarray | None = None, anchor: np.ndarray | None = None) -> np.ndarray:
     """The smooth part of the offsets of matched dots from their stencil sites.
@@ -429,7 +435,7 @@ def _stencil_warp(p: np.ndarray, mesh: TrackingMesh, mk_local: np.ndarray, dots:
     offsets (A, 3) mm, weights (A,)) taking part in the mean beside the dots (weight 1 each)."""
     from rigbuild.track.laplacian import vertex_normals
 
-    at = np.where((mk_local >= 0)[:, None], p[np.maximum(mk_local, 0)], np.nan)
+    at = site_positions(p, mk_local)
     labels = relabel_dots(at, dots, params.stencil_gate_mm)
     has = (labels >= 0) & (mk_local >= 0)
     if has.sum() < 4:
@@ -452,7 +458,7 @@ def _with_stencil_prior(terms: _DotTerms, p: np.ndarray, mesh: TrackingMesh, mk_
                         dots: np.ndarray, params: RegistrationParams) -> _DotTerms:
     """``terms`` plus the stencil prior: dots matched one to one to the painted dot vertices of ``p`` (gate
     ``stencil_gate_mm``) pull those vertices with ``stencil_prior_weight``."""
-    at = np.where((mk_local >= 0)[:, None], p[np.maximum(mk_local, 0)], np.nan)
+    at = site_positions(p, mk_local)
     labels = relabel_dots(at, dots, params.stencil_gate_mm)
     has = (labels >= 0) & (mk_local >= 0)
     tri, bary = mesh.vertex_points(mk_local[has])
@@ -626,7 +632,7 @@ def register_neutral(
             # the painted dots sit at the markers of the actor's surface: once the mesh has taken the scan's
             # shape its markers are near their dots, so dots the first (affine) labeling could not reach or
             # confused are assigned again, one to one, with a tighter gate
-            at = np.where((mk_local >= 0)[:, None], p[np.maximum(mk_local, 0)], np.nan)
+            at = site_positions(p, mk_local)
             labels = relabel_dots(at, dots, params.relabel_gate_mm)
             terms = _dot_terms(labels, dots, rays, mk_local, mesh, params.ray_labels_are_dots)
         p, row = _nonrigid_step(p, it, params, solver, mesh, tree, scan_points, scan_normals, terms, mk_local,
@@ -634,7 +640,7 @@ def register_neutral(
         history.append(row)
     if params.stencil_warp > 0:
         p = _stencil_warp(p, mesh, mk_local, dots, params)
-        at = np.where((mk_local >= 0)[:, None], p[np.maximum(mk_local, 0)], np.nan)
+        at = site_positions(p, mk_local)
         labels = relabel_dots(at, dots, params.relabel_gate_mm)  # the labels of the warped mesh
     full = mesh.to_full(p, aligned_full)
     return NeutralRegistration(
@@ -709,7 +715,7 @@ def _register_from_landmarks(template: Rig, scan_points: np.ndarray, scan_normal
         anchors = (lm_at, np.zeros_like(lm_at), params.stencil_landmark_weight * lm.weight)
         p = _stencil_warp(p, mesh, mk_local, dots, params, anchors)
     full = mesh.to_full(p, aligned_full)
-    at_dots = np.where((mk_local >= 0)[:, None], p[np.maximum(mk_local, 0)], np.nan)
+    at_dots = site_positions(p, mk_local)
     labels = relabel_dots(at_dots, dots, params.relabel_gate_mm)  # read off the mesh, for the sequence tracker
     return NeutralRegistration(
         vertices=full, markers=full[template.marker_vertices], similarity=(s, R, t), dot_labels=labels,
