@@ -20,8 +20,12 @@ Metrics (rigbuild.eval.tracking.ground_truth_tracking_metrics, the pipeline's ev
 forms, ``corr_mean_error_mm`` (tracking with the registration's tangential error taken out), lips and eyelids,
 per-frame means; seconds of the registration and per tracked frame (2 worker threads, in this process).
 
+The dot-placement sweep (``--dot-sweep [SD_MM ...]``, default 0 1 2 4): the tier's own tracking on the same
+session (same seed, actor, ROM and images but the dots) with the painted dots placed off their stencil sites by
+each standard deviation; the generated sessions are cached beside the tier's.
+
 Run: ``.venv/bin/python benchmarks/bench_track_realistic.py [--scenes ict_dev ict] [--variant NAME=JSON ...]
-[--only NAME ...] [--out NAME]``; writes ``benchmarks/out/track_realistic.json`` (or ``--out``).
+[--only NAME ...] [--dot-sweep [SD_MM ...]] [--out NAME]``; writes ``benchmarks/out/track_realistic.json`` (or ``--out``).
 """
 
 from __future__ import annotations
@@ -50,12 +54,14 @@ from rigbuild.synth.session import _merge as merge  # noqa: E402  (the config bl
 RENDERED = [0, 1]
 BUILTIN = {"config": {}, "dots": {"levels": ["features"]}, "dots+sift": {"levels": ["features", "sparse"]},
            "unpainted": "unpainted"}
+DOT_SWEEP_MM = (0.0, 1.0, 2.0, 4.0)
 KEYS = ("neutral_error_mm", "mean_error_mm", "p95_error_mm", "end_drift_mm", "visible_mean_error_mm",
         "corr_mean_error_mm", "lips_mean_error_mm", "eyelids_mean_error_mm")
 
 
-def tier_scene(name: str) -> Path:
-    """The tier's first two ROM sequences, as the tier has them (generated once, cached)."""
+def tier_scene(name: str, dot_sd: float | None = None) -> Path:
+    """The tier's first two ROM sequences, as the tier has them (generated once, cached); ``dot_sd``: the same
+    session with the painted dots placed off their stencil sites by this standard deviation (mm) instead."""
     import yaml
 
     from rigbuild.synth.session import generate_session
@@ -65,7 +71,11 @@ def tier_scene(name: str) -> Path:
     syn["calib_poses"] = 2
     syn["rom"]["render_sequences"] = RENDERED
     syn["performance"]["duration_s"] = 1.0
-    return cached_session(CACHE / f"track_{name}", syn, lambda out: generate_session(out, name, syn, progress=print))
+    folder = CACHE / f"track_{name}"
+    if dot_sd is not None and dot_sd != syn.get("dot_placement_sd_mm"):
+        syn["dot_placement_sd_mm"] = float(dot_sd)
+        folder = CACHE / f"track_{name}_dots{dot_sd:g}"
+    return cached_session(folder, syn, lambda out: generate_session(out, name, syn, progress=print))
 
 
 def tier_params(name: str) -> dict:
@@ -76,7 +86,7 @@ def tier_params(name: str) -> dict:
     return merge(base, yaml.safe_load((ROOT / TIERS[name][0]).read_text()).get("params", {}))
 
 
-def depth_folders(name: str, reconstruct: dict) -> dict[str, Path]:
+def depth_folders(name: str, reconstruct: dict, dot_sd: float | None = None) -> dict[str, Path]:
     """Depth maps of every frame of the scene's sequences (name -> folder), reconstructed with the ground-truth
     cameras and ``reconstruct`` (cached beside the scene, keyed by the block and the git tree of
     rigbuild/reconstruct)."""
@@ -85,7 +95,7 @@ def depth_folders(name: str, reconstruct: dict) -> dict[str, Path]:
     from rigbuild.reconstruct.sequence import process_frame
     from rigbuild.session import read_session
 
-    sess = tier_scene(name)
+    sess = tier_scene(name, dot_sd)
     out = sess / "bench_depth"
     key = json.dumps({"reconstruct": reconstruct, "source": _git("rev-parse", "HEAD:rigbuild/reconstruct")},
                      sort_keys=True)
@@ -104,9 +114,10 @@ def depth_folders(name: str, reconstruct: dict) -> dict[str, Path]:
     return folders
 
 
-def measure(name: str, block, base: dict) -> dict:
-    """Register and track the scene's sequences with the tier's ``params.track`` merged with ``block``
-    ("unpainted": the unpainted path); the pipeline's ground-truth metrics and timings."""
+def measure(name: str, block, base: dict, dot_sd: float | None = None) -> dict:
+    """Register and track the scene's sequences (``dot_sd``: :func:`tier_scene`'s) with the tier's
+    ``params.track`` merged with ``block`` ("unpainted": the unpainted path); the pipeline's ground-truth metrics
+    and timings."""
     from rigbuild.dots import painted_dot_vertices
     from rigbuild.eval.tracking import contour_regions, ground_truth_tracking_metrics
     from rigbuild.io.cameras import read_cameras
@@ -115,8 +126,8 @@ def measure(name: str, block, base: dict) -> dict:
     from rigbuild.track.params import from_config, unpainted
     from rigbuild.track.stage import load_views, track_neutral_frame, track_rom_sequence
 
-    sess = tier_scene(name)
-    depth = depth_folders(name, base.get("reconstruct", {}))
+    sess = tier_scene(name, dot_sd)
+    depth = depth_folders(name, base.get("reconstruct", {}), dot_sd)
     spec = read_session(sess)
     cams_path = sess / "ground_truth" / "cameras.json"
     cams = read_cameras(cams_path)
@@ -161,14 +172,17 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", default=list(TIERS), choices=list(TIERS))
     ap.add_argument("--variant", action="append", default=[], metavar="NAME=JSON",
                     help="a params.track block merged over the tier's (repeatable)")
-    ap.add_argument("--only", nargs="+", help="measure only these variants")
+    ap.add_argument("--only", nargs="*", help="measure only these variants (none: only the dot sweep)")
+    ap.add_argument("--dot-sweep", nargs="*", type=float, metavar="SD_MM",
+                    help="also the dot-placement sweep: the tier's tracking on the same session with the dots "
+                         f"placed off their stencil sites by these standard deviations (default {DOT_SWEEP_MM})")
     ap.add_argument("--out", default="track_realistic")
     a = ap.parse_args()
     variants: dict = dict(BUILTIN)
     for v in a.variant:
         k, _, js = v.partition("=")
         variants[k] = json.loads(js)
-    if a.only:
+    if a.only is not None:
         variants = {k: variants[k] for k in a.only}
     result: dict = {"rendered_sequences": RENDERED, "scenes": {}}
     rows = []
@@ -180,6 +194,17 @@ def main() -> None:
             result["scenes"][name]["variants"][vname] = r
             rows.append({"scene": name, "variant": vname, **{k: r.get(k) for k in (*KEYS, "seconds_per_frame")}})
             print_table(rows[-1:], list(rows[-1]))
+    if a.dot_sweep is not None:
+        result["dot_sweep"] = {}
+        for name in a.scenes:
+            base = tier_params(name)
+            result["dot_sweep"][name] = {}
+            for sd in a.dot_sweep or DOT_SWEEP_MM:
+                r = measure(name, {}, base, dot_sd=sd)
+                result["dot_sweep"][name][f"{sd:g}"] = r
+                rows.append({"scene": name, "variant": f"dots sd {sd:g} mm",
+                             **{k: r.get(k) for k in (*KEYS, "seconds_per_frame")}})
+                print_table(rows[-1:], list(rows[-1]))
     print_table(rows, ["scene", "variant", *KEYS, "seconds_per_frame"])
     write_result(a.out, result)
 

@@ -39,6 +39,8 @@ def test_unknown_registration_key_fails_with_did_you_mean():
     ({"lost_residual": 1.0}, r"params\.track\.lost_residual'.*did you mean 'lost_residual_mm'"),
     ({"dots": {"darknes": 0.3}}, r"params\.track\.dots\.darknes'.*did you mean 'darkness'"),
     ({"flow": {"preset": "slow"}}, "flow preset 'slow'"),
+    ({"flow": {"sources": ["previous", "neighbour"]}}, r"unknown flow sources \['neighbour'\]"),
+    ({"flow": {"sources": []}}, "flow.sources is empty"),
     ({"levels": ["features", "dense"]}, "unknown tracking levels"),
     ({"registration": {"lam_schedule": [0.02]}}, "lam_schedule has 1 values"),
     ({"registration": {"coarse": "markers"}}, "unknown coarse level 'markers'"),

@@ -86,6 +86,28 @@ def test_track_sequence_levels_and_drift(scene, registered):
     assert full["end_error_mm"] < full["first_error_mm"] + 0.1
 
 
+def test_flow_from_the_anchor_only_skips_the_previous_frame(scene, registered):
+    """``flow.sources: [anchor]`` measures the dense level against the neutral anchor only: on frames after the
+    first, about half the flow matches of the default (previous frame and anchor), and no more drift."""
+    from rigbuild.eval.tracking import tracking_summary
+    from rigbuild.track.params import FlowParams
+    from rigbuild.track.stage import track_rom_sequence
+
+    template, actor, verts, frames = scene
+    counts, summary = {}, {}
+    for sources in (("previous", "anchor"), ("anchor",)):
+        V, _, _, stats = track_rom_sequence(template, registered.vertices, frames[0], frames, [0, 1, 2], "rom00",
+                                            TrackParams(flow=FlowParams(sources=sources)))
+        counts[sources] = [s.flow for s in stats]
+        summary[sources] = tracking_summary(V, verts, template.faces, template.face_vertices, registered.vertices,
+                                            verts[0])
+    both, anchor_only = counts[("previous", "anchor")], counts[("anchor",)]
+    assert anchor_only[0] == both[0]  # the first frame has no previous frame
+    for k in (1, 2):
+        assert 0.3 * both[k] < anchor_only[k] < 0.7 * both[k]
+    assert summary[("anchor",)]["corr_mean_error_mm"] < 0.35
+
+
 def test_frame_that_loses_most_dots_is_reported_lost(scene, registered):
     import cv2
 

@@ -15,6 +15,8 @@ from rigbuild.params import from_mapping
 
 #: the tracking levels, coarse to fine
 LEVELS = ("features", "sparse", "flow")
+#: the frames the dense level measures flow from (:class:`FlowParams` ``sources``)
+FLOW_SOURCES = ("previous", "anchor")
 #: DIS optical-flow presets (:class:`FlowParams` ``preset``)
 FLOW_PRESETS = ("ultrafast", "fast", "medium")
 
@@ -85,7 +87,10 @@ class FlowParams:
     """grid_px: match spacing (relative to a 1280-px-wide image); preset: DIS preset name (one of
     :data:`FLOW_PRESETS`); fb_sigma_px: forward-backward error scale of the weights; max_fb_px: rejection;
     motion_step: motion-field (guide) sampling step in px; scale: image scale of the residual flow;
-    patch_stride: DIS patch stride (px)."""
+    patch_stride: DIS patch stride (px); sources: the frames the flow is measured from (``previous``: the
+    previous tracked frame, ``anchor``: the neutral anchor frame, with ``anchor``), a subset of
+    :data:`FLOW_SOURCES`. Flow from the previous frame chains: each frame inherits the previous frame's
+    error along the skin; flow from the anchor does not chain."""
 
     grid_px: float = 8.0
     preset: str = "medium"
@@ -94,6 +99,7 @@ class FlowParams:
     motion_step: int = 4
     scale: float = 1.0
     patch_stride: int = 4
+    sources: tuple[str, ...] = ("previous", "anchor")
 
 
 @dataclass
@@ -261,6 +267,10 @@ def _check(p: TrackParams) -> TrackParams:
     if p.flow.preset not in FLOW_PRESETS:
         raise InputError(f"unknown flow preset '{p.flow.preset}'", path="config params.track.flow.preset",
                          fix=f"use one of {list(FLOW_PRESETS)}")
+    bad = [s for s in p.flow.sources if s not in FLOW_SOURCES]
+    if bad or not p.flow.sources:
+        raise InputError(f"unknown flow sources {bad}" if bad else "params.track.flow.sources is empty",
+                         path="config params.track.flow.sources", fix=f"use a subset of {list(FLOW_SOURCES)}")
     if p.registration.coarse not in COARSE_LEVELS:
         raise InputError(f"unknown coarse level '{p.registration.coarse}'",
                          path="config params.track.registration.coarse", fix=f"use one of {list(COARSE_LEVELS)}")

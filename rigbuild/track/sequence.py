@@ -397,6 +397,8 @@ class SequenceTracker:
             for _ in range(self.p.flow_iterations):
                 parts = []
                 for s in sources:
+                    if s.name not in self.p.flow.sources:
+                        continue
                     mm = flow_matches(s, frames, p, self.p.flow, workers=self.p.workers)
                     if s.name == "anchor":
                         mm.weights = mm.weights * self.p.anchor_weight
