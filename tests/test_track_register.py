@@ -108,6 +108,20 @@ def _warped_actor_scan(head, seed=4):
     return truth, face, pts, nrm, rng
 
 
+def test_stencil_matched_dots_keep_the_painted_dots_only():
+    """Dots near a stencil site are kept one per site; a detection far from every site (a brow hair, an iris) and
+    the second of two detections near one site are not; sites off the mesh (-1) take none; gate 0 keeps all."""
+    from rigbuild.track.register import stencil_matched_dots
+
+    p = np.array([[0.0, 0, 0], [20, 0, 0], [0, 20, 0], [20, 20, 0]])
+    mk_local = np.array([0, 1, 2, -1])
+    dots = np.array([[1.0, 0, 0], [20, 2, 0], [10, 10, 0], [0, 21.5, 0], [0, 23, 0], [20, 20, 0]])
+    keep = stencil_matched_dots(p, mk_local, dots, 4.0)
+    assert keep.tolist() == [True, True, False, True, False, False]
+    assert stencil_matched_dots(p, mk_local, dots, 1.2).tolist() == [True, False, False, False, False, False]
+    assert stencil_matched_dots(p, mk_local, dots, 0.0) is None
+
+
 def test_register_neutral_to_warped_actor_scan(head):
     truth, face, pts, nrm, rng = _warped_actor_scan(head)
     dots = truth[head.marker_vertices][rng.permutation(head.marker_vertices.size)]

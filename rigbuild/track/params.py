@@ -149,6 +149,10 @@ class RegistrationParams:
     dot_surface_points : ``dots`` level only: each detected dot on the skin is tracked from its own closest point
         on the registered neutral (within the last gate) instead of from its stencil vertex, as the ``landmarks``
         level always does; for a ``dot_weight`` low enough that the registration does not pin each vertex to its dot.
+    dot_surface_stencil_gate_mm : which detected dots get a surface point (and are tracked): 0 = every dot within
+        the last gate of the registered surface; > 0 = only the dots matched one to one to a stencil site of the
+        registered neutral within this distance (mm). The stencil as a prior for which detections are painted
+        dots: eyebrow hairs, lashes and irises are found as dots too, near the skin but far from any site.
     """
 
     ray_labels_are_dots: bool = True
@@ -173,6 +177,7 @@ class RegistrationParams:
     stencil_warp: float = 0.0
     stencil_smoothing_mm: float = 30.0
     stencil_landmark_weight: float = 0.3
+    dot_surface_stencil_gate_mm: float = 0.0
     dot_surface_points: bool = False
 
 

@@ -647,22 +647,38 @@ def register_neutral(
         vertices=full, markers=full[template.marker_vertices], similarity=(s, R, t), dot_labels=labels,
         scan_rms_mm=_scan_rms(p, mesh, tree, scan_points, scan_normals, params),
         dot_rms_mm=_dot_rms(p, mk_local, terms), history=history,
-        dot_surface=dot_surface_points(p, mesh, dots, params.gate_schedule_mm[1]) if params.dot_surface_points
-        else None,
+        dot_surface=dot_surface_points(p, mesh, dots, params.gate_schedule_mm[1],
+                                       stencil_matched_dots(p, mk_local, dots, params.dot_surface_stencil_gate_mm))
+        if params.dot_surface_points else None,
     )
 
 
-def dot_surface_points(p: np.ndarray, mesh: TrackingMesh, dots: np.ndarray, gate_mm: float
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def dot_surface_points(p: np.ndarray, mesh: TrackingMesh, dots: np.ndarray, gate_mm: float,
+                       keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each detected dot's own point on the registered neutral: the closest surface point of ``p`` (T, 3) mm (the
     tracking mesh) to each of ``dots`` (D, 3) mm, kept within ``gate_mm`` (dots on the skin, not on hair, the
-    background or the eyes). Returns (K, 3) template vertex ids of its triangle, (K, 3) barycentrics, (K,) dot
-    indices (:attr:`NeutralRegistration.dot_surface`)."""
+    background or the eyes) and, given ``keep`` (D,) bool, only where it is set. Returns (K, 3) template vertex
+    ids of its triangle, (K, 3) barycentrics, (K,) dot indices (:attr:`NeutralRegistration.dot_surface`)."""
     from rigbuild.track.matches import closest_surface_points
 
     tri, bary, dist = closest_surface_points(np.asarray(dots, np.float64).reshape(-1, 3), p, mesh.faces)
-    on = np.flatnonzero(dist <= gate_mm)
+    ok = dist <= gate_mm
+    if keep is not None:
+        ok &= np.asarray(keep, bool)
+    on = np.flatnonzero(ok)
     return mesh.vertex_ids[mesh.faces[tri[on]]], bary[on], on
+
+
+def stencil_matched_dots(p: np.ndarray, mk_local: np.ndarray, dots: np.ndarray, gate_mm: float) -> np.ndarray | None:
+    """(D,) bool: the ``dots`` (D, 3) mm matched one to one (:func:`relabel_dots`) to a stencil site of the
+    registered tracking mesh ``p`` (T, 3) mm (``mk_local``: the sites' local vertex ids, -1 = off the mesh) within
+    ``gate_mm``; None for ``gate_mm`` <= 0 (every dot)."""
+    if gate_mm <= 0:
+        return None
+    labels = relabel_dots(site_positions(p, mk_local), dots, gate_mm)
+    keep = np.zeros(len(dots), bool)
+    keep[labels[labels >= 0]] = True
+    return keep
 
 
 def _scan_rms(p: np.ndarray, mesh: TrackingMesh, tree: cKDTree, scan_points: np.ndarray, scan_normals: np.ndarray,
@@ -721,5 +737,6 @@ def _register_from_landmarks(template: Rig, scan_points: np.ndarray, scan_normal
         vertices=full, markers=full[template.marker_vertices], similarity=(s, R, t), dot_labels=labels,
         scan_rms_mm=_scan_rms(p, mesh, tree, scan_points, scan_normals, params),
         dot_rms_mm=_dot_rms(p, mk_local, terms, mesh.faces), history=history,
-        dot_surface=dot_surface_points(p, mesh, dots, params.gate_schedule_mm[1]),
+        dot_surface=dot_surface_points(p, mesh, dots, params.gate_schedule_mm[1],
+                                       stencil_matched_dots(p, mk_local, dots, params.dot_surface_stencil_gate_mm)),
     )
