@@ -15,7 +15,7 @@
 
 6. Real footage (issue 21): the 4-camera sleap-anipose ChArUco recording (84 JPEG images, 1280x1024) as the
    calibration-only session config/calibration-only/sleap-charuco with config/sleap-charuco.yaml's
-   parameters, timed end to end (detection, intrinsics, pose graph, bundle adjustment, held-out refit;
+   parameters over config/config.yaml's (as the pipeline merges them), timed end to end (detection, intrinsics, pose graph, bundle adjustment, held-out refit;
    goal: under 30 s on 2 cores); skipped when $RIGBUILD_DATA lacks it.
 7. Section 5 with separately shot intrinsics: 12 close-up boards per camera seen by it alone
    (calib_intrinsics/<cam>/), their intrinsics held in the rig fit (known_intrinsics: fixed) or as priors
@@ -24,7 +24,8 @@
    generate_calibration_only: the bytes the pipeline's generator writes): the development actor
    (config/ict-dev.yaml, where the choice is made) and the acceptance actors (config/ict.yaml, config/ict-b.yaml),
    each calibrated with config/config.yaml's calibrate block and with it under robust_scale_px 1 (equal weights,
-   1 px soft-L1), auto, and auto + noise_model view_angle; the same bounds.
+   1 px soft-L1), auto, and auto + noise_model view_angle, the last also with OpenCV's own ChArUco corners
+   (face_on_subpix_deg 0: no second pass on the corners seen nearly face-on); the same bounds.
 
 Writes benchmarks/out/calibrate.json and prints a table.
 Run: OPENBLAS_NUM_THREADS=1 python benchmarks/bench_calibrate.py [--only timing,solver,accuracy,detection,rendered,real,separate]
@@ -217,7 +218,9 @@ def real_footage():
 
     if not (data_dir() / "sleap-anipose-charuco-4cam").is_dir():
         return None
-    params = yaml.safe_load((ROOT / "config" / "sleap-charuco.yaml").read_text())["params"]["calibrate"]
+    base = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["params"]["calibrate"]
+    # the pipeline merges the session's config over config/config.yaml
+    params = {**base, **yaml.safe_load((ROOT / "config" / "sleap-charuco.yaml").read_text())["params"]["calibrate"]}
     t0, c0 = time.perf_counter(), time.process_time()
     _, res = calibrate_session(ROOT / "config" / "calibration-only" / "sleap-charuco", from_config(params),
                                workers=2)
@@ -236,7 +239,9 @@ def real_footage():
 NOISE_TIERS = (("ict-dev.yaml", "ict_dev"), ("ict.yaml", "ict"), ("ict-b.yaml", "ict_b"))
 NOISE_VARIANTS = (("fixed_1px", {"robust_scale_px": 1.0, "noise_model": "none"}),
                   ("auto", {"robust_scale_px": "auto", "noise_model": "none"}),
-                  ("auto_view_angle", {"robust_scale_px": "auto", "noise_model": "view_angle"}))
+                  ("auto_view_angle", {"robust_scale_px": "auto", "noise_model": "view_angle"}),
+                  ("auto_view_angle_opencv_corners", {"robust_scale_px": "auto", "noise_model": "view_angle",
+                                                      "face_on_subpix_deg": 0.0}))
 
 
 def noise_models(folder: Path) -> dict:

@@ -140,6 +140,11 @@ def test_unknown_calibrate_key_fails_with_did_you_mean(session, tmp_path):
     with pytest.raises(InputError, match="(?s)noise_model.*use one of none, view_angle"):
         from_config({"noise_model": "angle"})
     assert from_config({"robust_scale_px": "auto", "noise_model": "view_angle"}).robust_scale_px == "auto"
+    for key, bad in (("face_on_subpix_deg", 90), ("face_on_subpix_deg", -1), ("face_on_subpix_deg", "45"),
+                     ("face_on_subpix_blur_px", -0.5), ("face_on_subpix_window", 0), ("face_on_subpix_window", 0.6)):
+        with pytest.raises(InputError, match=f"{key}': must be"):
+            from_config({key: bad})
+    assert from_config({"face_on_subpix_deg": 45, "face_on_subpix_window": 0.5}).face_on_subpix_deg == 45
     with pytest.raises(InputError, match="did you mean 'fix_k3'"):
         run_calibrate(session[0], tmp_path / "calib", {"fix_k": True})
     assert not (tmp_path / "calib").exists()

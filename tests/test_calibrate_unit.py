@@ -391,3 +391,75 @@ def test_detection_picture_draws_corners_reprojections_and_header():
     assert pic[70, 5, 2] > 0 and pic[70, 5, 1] == 0 and pic[45, 55, 2] == 0
     small = draw_detections(None, 1000, 800, det * 10, rep * 10, det * 10, "cam00", max_width=500)
     assert small.shape == (400, 500, 3)
+
+
+# ------------------------------------------------------------------ face-on corner refinement
+FACE_BOARD = BoardSpec("charuco", 7, 5, 24.0, 18.0, "DICT_5X5_100")
+
+
+def test_board_foreshortening_of_an_affine_view_is_exact():
+    """A board turned by 50 degrees about its y axis under an affine camera: u = s cos(50) x + u0, v = s y + v0."""
+    from rigbuild.calibrate.detect import board_foreshortening
+
+    s, c = 2.5, np.cos(np.radians(50.0))
+    xy = np.array([[x, y] for x in range(0, 100, 20) for y in range(0, 80, 20)], float)
+    uv = np.c_[s * c * xy[:, 0] + 300.0, s * xy[:, 1] + 200.0]
+    cos_view, px_per_mm = board_foreshortening(xy, uv)
+    np.testing.assert_allclose(cos_view, c, rtol=1e-6)  # findHomography's own precision
+    np.testing.assert_allclose(px_per_mm, s * c, rtol=1e-6)
+
+
+def _board_views(homography_dst, n_draws, noise, seed=0):
+    """OpenCV's drawing of FACE_BOARD (60 px squares) warped so that its 4 image corners land on
+    ``homography_dst``, blurred, ``n_draws`` times with fresh Gaussian noise (grey levels); and the true image
+    positions (24, 2) of the board's inner corners (the drawing's pixel k covers [k, k + 1), so an edge drawn
+    at k lies at k - 0.5 in OpenCV's pixel-centre coordinates)."""
+    im = FACE_BOARD.opencv_board().generateImage((60 * 7 + 40, 60 * 5 + 40), marginSize=20)
+    src = np.float32([[0, 0], [im.shape[1], 0], [im.shape[1], im.shape[0]], [0, im.shape[0]]])
+    M = cv2.getPerspectiveTransform(src, np.float32(homography_dst))
+    warped = cv2.warpPerspective(im, M, (800, 600), borderValue=255, flags=cv2.INTER_CUBIC)
+    base = cv2.GaussianBlur(warped.astype(np.float32), (0, 0), 1.0)
+    rng = np.random.default_rng(seed)
+    views = [np.clip(base + rng.normal(0, noise, base.shape), 0, 255).astype(np.uint8) for _ in range(n_draws)]
+    q = np.c_[20.0 + 2.5 * FACE_BOARD.corner_points()[0][:, :2] - 0.5, np.ones(24)] @ M.T
+    return views, q[:, :2] / q[:, 2:]
+
+
+def test_face_on_refinement_lowers_corner_bias_and_noise():
+    """Twelve noisy captures of one nearly face-on view against the true corners: the second pass's corners
+    are less biased (mean over the captures) and scatter less than OpenCV's own refinement (measured: bias
+    0.30 -> 0.06 px, spread 0.062 -> 0.044 px); an angle of 0 is the detector unchanged."""
+    from rigbuild.calibrate.detect import FaceOnRefinement
+
+    views, truth = _board_views([[160, 120], [640, 130], [630, 470], [170, 460]], 12, noise=6.0)
+    refine = FaceOnRefinement(45.0, 1.0, 0.1)
+
+    def errors(face_on):
+        dets = [detect_board(v, FACE_BOARD, face_on=face_on) for v in views]
+        assert all(len(d) == 24 for d in dets)
+        return np.stack([d.corners - truth[d.ids] for d in dets])
+
+    def bias_and_spread(E):
+        return np.sqrt((E.mean(0) ** 2).sum(1).mean()), np.sqrt(((E - E.mean(0)) ** 2).sum(2).mean())
+
+    bias0, spread0 = bias_and_spread(errors(None))
+    bias1, spread1 = bias_and_spread(errors(refine))
+    assert bias1 < 0.1 < bias0 and bias1 < 0.5 * bias0, (bias0, bias1)
+    assert spread1 < 0.85 * spread0, (spread0, spread1)
+    off = detect_board(views[0], FACE_BOARD, face_on=FaceOnRefinement(0.0))
+    np.testing.assert_array_equal(off.corners, detect_board(views[0], FACE_BOARD).corners)
+
+
+def test_face_on_refinement_leaves_steep_views_to_opencv():
+    """A board turned about 60 degrees (x squeezed to half): beyond 45 degrees, no corner is refined again."""
+    from rigbuild.calibrate.detect import FaceOnRefinement, board_foreshortening
+
+    view = _board_views([[300, 120], [540, 130], [535, 470], [305, 460]], 1, noise=2.0)[0][0]
+    plain = detect_board(view, FACE_BOARD)
+    assert len(plain) == 24
+    cos_view, _ = board_foreshortening(FACE_BOARD.corner_points()[0][plain.ids, :2], plain.corners)
+    assert cos_view.max() < np.cos(np.radians(45.0))
+    again = detect_board(view, FACE_BOARD, face_on=FaceOnRefinement(45.0))
+    np.testing.assert_array_equal(again.corners, plain.corners)
+    some = detect_board(view, FACE_BOARD, face_on=FaceOnRefinement(70.0))
+    assert not np.array_equal(some.corners, plain.corners)

@@ -23,6 +23,7 @@ from rigbuild.session import BoardSpec
 
 _PNG_END = b"IEND\xaeB`\x82"
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.1)
+_FACE_ON_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 0.001)
 
 
 @dataclass
@@ -101,6 +102,67 @@ def detect_charuco(gray: np.ndarray, board: BoardSpec, subpix_window: int = 0) -
     return Detection(ch_ids.reshape(-1)[order], corners[order])
 
 
+@dataclass(frozen=True)
+class FaceOnRefinement:
+    """A second sub-pixel pass for ChArUco corners whose board is seen nearly face-on
+    (:func:`refine_face_on`; ``params.calibrate.face_on_subpix_*``).
+
+    max_view_angle_deg : corners whose local board plane is seen within this angle of face-on (0 = off);
+    blur_px : Gaussian sigma of the image the pass refines on (px; 0 = none);
+    window_fraction : ``cornerSubPix`` half-window as a fraction of the corner's local spacing along the
+        board's most foreshortened direction (px), clipped to 2..15 px.
+    """
+
+    max_view_angle_deg: float = 0.0
+    blur_px: float = 1.0
+    window_fraction: float = 0.1
+
+
+def board_foreshortening(board_xy: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Local view of the board plane at each detected corner, from the board-to-image homography.
+
+    board_xy (N, 2) mm corner positions on the board plane, corners (N, 2) px (N >= 4, not collinear).
+    Returns ``cos_view`` (N,): the smaller over the larger singular value of the homography's Jacobian at
+    the corner (1 = face-on; cos of the angle between the board normal and the ray under local weak
+    perspective), and ``px_per_mm`` (N,): its smaller singular value (image pixels per board mm along the
+    most foreshortened direction).
+    """
+    H, _ = cv2.findHomography(np.asarray(board_xy, np.float64), np.asarray(corners, np.float64), 0)
+    if H is None:
+        n = len(corners)
+        return np.zeros(n), np.zeros(n)
+    q = np.c_[board_xy, np.ones(len(board_xy))] @ H.T  # (N, 3) homogeneous image points
+    w = q[:, 2, None, None]
+    J = (H[None, :2, :2] * w - q[:, :2, None] * H[None, 2, None, :2]) / w ** 2  # d(u, v) / d(x, y)
+    s = np.linalg.svd(J, compute_uv=False)
+    return s[:, 1] / np.maximum(s[:, 0], 1e-12), s[:, 1]
+
+
+def refine_face_on(gray: np.ndarray, det: "Detection", board: BoardSpec, refine: FaceOnRefinement) -> "Detection":
+    """Refine again the ChArUco corners of ``det`` whose board plane is seen within
+    ``refine.max_view_angle_deg`` of face-on: ``cornerSubPix`` run to convergence (100 iterations, 0.001 px)
+    on the image blurred by ``refine.blur_px``, with a half-window of ``refine.window_fraction`` of the
+    corner's local spacing (:func:`board_foreshortening`), so that the window stays inside the corner's
+    squares, clear of the markers. Steeper corners keep OpenCV's refinement (a window that is square in
+    the image reaches the neighbouring markers there). Fewer than 6 corners: ``det`` unchanged.
+
+    gray (H, W) uint8; returns a new :class:`Detection` (same ids)."""
+    if refine.max_view_angle_deg <= 0 or len(det) < 6:
+        return det
+    cos_view, px_per_mm = board_foreshortening(board.corner_points()[0][det.ids, :2], det.corners)
+    sel = cos_view >= np.cos(np.radians(refine.max_view_angle_deg))
+    if not sel.any():
+        return det
+    window = np.clip(np.round(refine.window_fraction * px_per_mm * board.square_size_mm), 2, 15).astype(int)
+    img = cv2.GaussianBlur(gray, (0, 0), refine.blur_px) if refine.blur_px > 0 else gray
+    corners = det.corners.copy()
+    for w in np.unique(window[sel]):
+        m = sel & (window == w)
+        corners[m] = cv2.cornerSubPix(img, corners[m].astype(np.float32).reshape(-1, 1, 2), (int(w), int(w)),
+                                      (-1, -1), _FACE_ON_CRITERIA).reshape(-1, 2)
+    return Detection(det.ids, corners)
+
+
 def chessboard_subpix_window(corners: np.ndarray, nx: int, ny: int) -> int:
     """Half-window (px) for ``cornerSubPix`` from the corner spacing: a fifth of the smallest spacing
     between grid neighbours, clipped to 5..21 px (the window must stay inside the corner's four squares;
@@ -149,15 +211,20 @@ def _detect_polarity(gray: np.ndarray, board: BoardSpec, subpix_window: int | No
     raise InputError(f"unknown board type '{board.type}'", fix="use 'charuco' or 'chessboard' in session.yaml board.type")
 
 
-def detect_board(gray: np.ndarray, board: BoardSpec, subpix_window: int | None = None) -> Detection:
+def detect_board(gray: np.ndarray, board: BoardSpec, subpix_window: int | None = None,
+                 face_on: FaceOnRefinement | None = None) -> Detection:
     """Dispatch on ``board.type`` (``charuco`` or ``chessboard``) and ``board.inverted``: ``True`` detects
     in the inverted image (a board printed white on black), ``"auto"`` tries the image as it is and then
-    inverted when the first finds no corner."""
+    inverted when the first finds no corner. ``face_on``: ChArUco corners seen nearly face-on are refined
+    again (:func:`refine_face_on`; None or an angle of 0: off)."""
     if board.inverted is True:
-        return _detect_polarity(255 - gray, board, subpix_window)
-    det = _detect_polarity(gray, board, subpix_window)
-    if board.inverted == "auto" and len(det) == 0:
         det = _detect_polarity(255 - gray, board, subpix_window)
+    else:
+        det = _detect_polarity(gray, board, subpix_window)
+        if board.inverted == "auto" and len(det) == 0:
+            det = _detect_polarity(255 - gray, board, subpix_window)
+    if face_on is not None and board.type == "charuco":
+        det = refine_face_on(gray, det, board, face_on)  # gradients: either polarity refines the same
     return det
 
 
@@ -238,21 +305,22 @@ def is_usable(det: Detection, board: BoardSpec, min_corners: int) -> bool:
 
 
 def _detect_path(job: tuple) -> Detection:
-    path, board, image_size, subpix_window = job
-    return detect_board(read_gray(path, image_size), board, subpix_window)
+    path, board, image_size, subpix_window, face_on = job
+    return detect_board(read_gray(path, image_size), board, subpix_window, face_on)
 
 
 def detect_paths(paths: Iterable[str | os.PathLike], board: BoardSpec, image_size: tuple[int, int] | None = None,
-                 subpix_window: int | None = None, workers: int = 1, label: str = "board detection"
-                 ) -> list[Detection]:
-    """:func:`detect_board` on each image file, in order, on ``workers`` threads when > 1 (ArUco and
+                 subpix_window: int | None = None, workers: int = 1, label: str = "board detection",
+                 face_on: FaceOnRefinement | None = None) -> list[Detection]:
+    """:func:`detect_board` (``subpix_window``, ``face_on``) on each image file, in order, on ``workers``
+    threads when > 1 (ArUco and
     chessboard detection run on one core each and OpenCV releases the GIL, so images are detected side by
     side). Errors (:func:`read_gray`) are raised as in one thread, naming the file.
 
     Threads, not processes: a child forked from a process whose OpenCV thread pool (or any other thread) was
     running can wait forever inside OpenCV (seen in the test suite: a forked child hung in ``detectBoard``),
     and a spawned one would re-run a Snakemake script's top level."""
-    jobs = [(p, board, image_size, subpix_window) for p in paths]
+    jobs = [(p, board, image_size, subpix_window, face_on) for p in paths]
     workers = int(min(max(workers, 1), len(jobs)))
     if workers > 1:
         from concurrent.futures import ThreadPoolExecutor
@@ -268,8 +336,10 @@ def detect_images(
     image_size: tuple[int, int] | None = None,
     subpix_window: int | None = None,
     workers: int = 1,
+    face_on: FaceOnRefinement | None = None,
 ) -> dict[str, dict[str, Detection]]:
-    """Detect the board in every image (:func:`detect_paths`, ``workers`` threads).
+    """Detect the board in every image (:func:`detect_paths`, ``workers`` threads, ``subpix_window`` and
+    ``face_on`` as :func:`detect_board`).
 
     images : camera id -> view key -> image path. The view key names the board pose: images of
         different cameras with the same key were taken at the same instant (synchronized capture).
@@ -278,7 +348,7 @@ def detect_images(
     Returns camera id -> view key -> :class:`Detection` (possibly empty).
     """
     keys = [(cam, key) for cam, views in images.items() for key in views]
-    dets = detect_paths([images[c][k] for c, k in keys], board, image_size, subpix_window, workers)
+    dets = detect_paths([images[c][k] for c, k in keys], board, image_size, subpix_window, workers, face_on=face_on)
     out: dict[str, dict[str, Detection]] = {cam: {} for cam in images}
     for (cam, key), d in zip(keys, dets):
         out[cam][key] = d

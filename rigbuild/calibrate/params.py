@@ -55,6 +55,10 @@ class CalibrationOptions:
     subpix_window : corner refinement half-window, px (None = the detector's default per board type:
         0 = none for ChArUco (OpenCV's own refinement), a fifth of the corner spacing (5..21 px) for
         chessboards; see :func:`rigbuild.calibrate.detect.detect_board`).
+    face_on_subpix_deg, face_on_subpix_blur_px, face_on_subpix_window : a second sub-pixel pass for ChArUco
+        corners whose board is seen within ``face_on_subpix_deg`` of face-on (0 = off), on the image blurred
+        by ``face_on_subpix_blur_px`` (px), half-window ``face_on_subpix_window`` times the corner's local
+        spacing (:func:`rigbuild.calibrate.detect.refine_face_on`).
     heldout_every : every n-th board pose (in view-key order, the n-th, 2n-th, ...) is left out of a second
         fit whose cameras triangulate and reproject its corners (``heldout_reprojection_rms_px``); 0 = off.
         The delivered calibration uses every pose.
@@ -80,6 +84,9 @@ class CalibrationOptions:
     max_iterations: int = 1000
     tolerance: float = 1e-10
     subpix_window: int | None = None
+    face_on_subpix_deg: float = 0.0
+    face_on_subpix_blur_px: float = 1.0
+    face_on_subpix_window: float = 0.1
     heldout_every: int = 4
     min_board_poses: int = 10
 
@@ -105,6 +112,13 @@ def from_config(values: Mapping[str, Any] | None) -> CalibrationOptions:
     if p.subpix_window is not None and (not isinstance(p.subpix_window, int) or p.subpix_window < 0):
         raise InputError(f"field '{WHERE}.subpix_window': must be a whole number of pixels >= 0 or null, "
                          f"got {p.subpix_window!r}", path="config")
+    checks = {"face_on_subpix_deg": (lambda v: 0 <= v < 90, "an angle in degrees, 0 <= angle < 90 (0 = off)"),
+              "face_on_subpix_blur_px": (lambda v: v >= 0, "a blur in pixels >= 0"),
+              "face_on_subpix_window": (lambda v: 0 < v <= 0.5, "a fraction of the corner spacing in (0, 0.5]")}
+    for name, (ok, text) in checks.items():
+        v = getattr(p, name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not ok(v):
+            raise InputError(f"field '{WHERE}.{name}': must be {text}, got {v!r}", path="config")
     for name in ("max_iterations", "heldout_every", "min_board_poses"):
         v = getattr(p, name)
         if not isinstance(v, int) or v < (1 if name == "max_iterations" else 0):

@@ -28,8 +28,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from rigbuild.calibrate.detect import (Detection, count_corners, describe_board, detect_images, detect_paths,
-                                      diagnose_board, is_usable, read_gray, session_images)
+from rigbuild.calibrate.detect import (Detection, FaceOnRefinement, count_corners, describe_board, detect_images,
+                                      detect_paths, diagnose_board, is_usable, read_gray, session_images)
 from rigbuild.calibrate import qa
 from rigbuild.calibrate.heldout import heldout_errors, split_views
 from rigbuild.calibrate.intrinsics import calibrate_intrinsics, calibration_flags, given_intrinsics
@@ -70,6 +70,13 @@ def no_board_error(spec: SessionSpec, images: Mapping[str, Mapping[str, Path]], 
                       "images)")
 
 
+def face_on(params: CalibrationOptions) -> FaceOnRefinement | None:
+    """The detector's face-on corner refinement from the stage's ``face_on_subpix_*`` (None when off)."""
+    if params.face_on_subpix_deg <= 0:
+        return None
+    return FaceOnRefinement(params.face_on_subpix_deg, params.face_on_subpix_blur_px, params.face_on_subpix_window)
+
+
 def known_intrinsics(spec: SessionSpec, params: CalibrationOptions, workers: int = 1) -> dict[str, KnownIntrinsics]:
     """camera id -> intrinsics known before the rig fit: session.yaml ``intrinsics:`` (source ``given``),
     else Zhang's method on the camera's own ``calib_intrinsics/<cam>/`` images (source ``images``, with the
@@ -85,7 +92,7 @@ def known_intrinsics(spec: SessionSpec, params: CalibrationOptions, workers: int
         if cam in out or not paths:
             continue
         dets = dict(zip(paths, detect_paths(paths, spec.board, (spec.width, spec.height), params.subpix_window,
-                                            workers, f"intrinsics board detection {cam}")))
+                                            workers, f"intrinsics board detection {cam}", face_on(params))))
         if not any(len(d) for d in dets.values()):
             raise no_board_error(spec, {cam: {p.stem: p for p in paths}}, f"intrinsics ({spec.intrinsics_dir(cam)})")
         good = [d for d in dets.values() if is_usable(d, spec.board, params.min_corners)]
@@ -122,7 +129,8 @@ def calibrate_session(session_dir: str | os.PathLike, params: CalibrationOptions
     params = params if isinstance(params, CalibrationOptions) else from_config(params)
     images = session_images(spec)
     t0 = time.perf_counter()
-    detections = detect_images(images, spec.board, (spec.width, spec.height), params.subpix_window, workers)
+    detections = detect_images(images, spec.board, (spec.width, spec.height), params.subpix_window, workers,
+                               face_on(params))
     t_detect = time.perf_counter() - t0
     if count_corners(detections) == 0:
         raise no_board_error(spec, images)
