@@ -138,7 +138,7 @@ def board_foreshortening(board_xy: np.ndarray, corners: np.ndarray) -> tuple[np.
     return s[:, 1] / np.maximum(s[:, 0], 1e-12), s[:, 1]
 
 
-def refine_face_on(gray: np.ndarray, det: "Detection", board: BoardSpec, refine: FaceOnRefinement) -> "Detection":
+def refine_face_on(gray: np.ndarray, det: Detection, board: BoardSpec, refine: FaceOnRefinement) -> Detection:
     """Refine again the ChArUco corners of ``det`` whose board plane is seen within
     ``refine.max_view_angle_deg`` of face-on: ``cornerSubPix`` run to convergence (100 iterations, 0.001 px)
     on the image blurred by ``refine.blur_px``, with a half-window of ``refine.window_fraction`` of the
@@ -313,9 +313,8 @@ def detect_paths(paths: Iterable[str | os.PathLike], board: BoardSpec, image_siz
                  subpix_window: int | None = None, workers: int = 1, label: str = "board detection",
                  face_on: FaceOnRefinement | None = None) -> list[Detection]:
     """:func:`detect_board` (``subpix_window``, ``face_on``) on each image file, in order, on ``workers``
-    threads when > 1 (ArUco and
-    chessboard detection run on one core each and OpenCV releases the GIL, so images are detected side by
-    side). Errors (:func:`read_gray`) are raised as in one thread, naming the file.
+    threads when > 1 (ArUco and chessboard detection run on one core each and OpenCV releases the GIL, so
+    images are detected side by side). Errors (:func:`read_gray`) are raised as in one thread, naming the file.
 
     Threads, not processes: a child forked from a process whose OpenCV thread pool (or any other thread) was
     running can wait forever inside OpenCV (seen in the test suite: a forked child hung in ``detectBoard``),
