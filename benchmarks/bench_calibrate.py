@@ -147,8 +147,8 @@ def detection_timing(n=3):
 def rendered_ict_tier(folder=None, intrinsics_poses: int = 0, params: dict | None = None):
     """Section 5: render config/ict.yaml's calibration images, calibrate, compare with ground truth.
     ``intrinsics_poses`` > 0 (section 7): also each camera's own close-up boards (calib_intrinsics/<cam>/), whose
-    intrinsics the rig fit holds (``params``: the stage's calibrate block; known_intrinsics fixed by default, or
-    prior)."""
+    intrinsics the rig fit holds (``params``: over config/config.yaml's calibrate block, as the pipeline merges
+    them; known_intrinsics fixed by default, or prior)."""
     import tempfile
 
     import yaml
@@ -172,7 +172,9 @@ def rendered_ict_tier(folder=None, intrinsics_poses: int = 0, params: dict | Non
         t_render = time.perf_counter() - t0
     from rigbuild.calibrate.params import from_config
 
-    spec, res = calibrate_session(folder, from_config(params or {}), workers=2)  # the rule's 2 threads
+    base = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["params"]["calibrate"]
+    # config.yaml's calibrate block under ``params``, as the pipeline merges a tier's config over it
+    spec, res = calibrate_session(folder, from_config({**base, **(params or {})}), workers=2)  # the rule's 2 threads
     truth = read_cameras(folder / "ground_truth" / "cameras.json")
     gt = np.load(folder / "ground_truth" / "board_poses.npz")
     # corner localisation: every observation the calibration used vs the true projection
@@ -193,7 +195,7 @@ def rendered_ict_tier(folder=None, intrinsics_poses: int = 0, params: dict | Non
            "block": {k: block[k] for k in ("seed", "n_cameras", "image_size", "camera_distance_mm", "calib_poses",
                                            "board")},
            "render_seconds": render_s, "render_and_write_seconds": t_render, "intrinsics_poses": intrinsics_poses,
-           "params": params or {},
+           "params": {**base, **(params or {})},
            "intrinsics_source": m["intrinsics_source"],
            **{k: m[k] for k in ("rms_px", "max_camera_rms_px", "n_images_used", "n_images_dropped", "n_corners",
                                 "bundle_iterations_nfev", "bundle_converged", "seconds", "seconds_detect",
