@@ -15,8 +15,9 @@
 
 6. Real footage (issue 21): the 4-camera sleap-anipose ChArUco recording (84 JPEG images, 1280x1024) as the
    calibration-only session config/calibration-only/sleap-charuco with config/sleap-charuco.yaml's
-   parameters over config/config.yaml's (as the pipeline merges them), timed end to end (detection, intrinsics, pose graph, bundle adjustment, held-out refit;
-   goal: under 30 s on 2 cores); skipped when $RIGBUILD_DATA lacks it.
+   parameters over config/config.yaml's (as the pipeline merges them), timed end to end (detection,
+   intrinsics, pose graph, bundle adjustment, held-out refit; goal: under 30 s on 2 cores); skipped when
+   $RIGBUILD_DATA lacks it.
 7. Section 5 with separately shot intrinsics: 12 close-up boards per camera seen by it alone
    (calib_intrinsics/<cam>/), their intrinsics held in the rig fit (known_intrinsics: fixed) or as priors
    (prior); the same bounds.
@@ -144,6 +145,14 @@ def detection_timing(n=3):
             "corners_found": counts}
 
 
+def pipeline_calibrate_block() -> dict:
+    """config/config.yaml's ``params.calibrate``: what every tier's calibrate rule runs with (a tier's or session's
+    config is merged over it)."""
+    import yaml
+
+    return yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["params"]["calibrate"]
+
+
 def rendered_ict_tier(folder=None, intrinsics_poses: int = 0, params: dict | None = None):
     """Section 5: render config/ict.yaml's calibration images, calibrate, compare with ground truth.
     ``intrinsics_poses`` > 0 (section 7): also each camera's own close-up boards (calib_intrinsics/<cam>/), whose
@@ -172,8 +181,7 @@ def rendered_ict_tier(folder=None, intrinsics_poses: int = 0, params: dict | Non
         t_render = time.perf_counter() - t0
     from rigbuild.calibrate.params import from_config
 
-    base = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["params"]["calibrate"]
-    # config.yaml's calibrate block under ``params``, as the pipeline merges a tier's config over it
+    base = pipeline_calibrate_block()  # ``params`` over it, as the pipeline merges a tier's config
     spec, res = calibrate_session(folder, from_config({**base, **(params or {})}), workers=2)  # the rule's 2 threads
     truth = read_cameras(folder / "ground_truth" / "cameras.json")
     gt = np.load(folder / "ground_truth" / "board_poses.npz")
@@ -220,8 +228,7 @@ def real_footage():
 
     if not (data_dir() / "sleap-anipose-charuco-4cam").is_dir():
         return None
-    base = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["params"]["calibrate"]
-    # the pipeline merges the session's config over config/config.yaml
+    base = pipeline_calibrate_block()  # the session's config over it, as the pipeline merges them
     params = {**base, **yaml.safe_load((ROOT / "config" / "sleap-charuco.yaml").read_text())["params"]["calibrate"]}
     t0, c0 = time.perf_counter(), time.process_time()
     _, res = calibrate_session(ROOT / "config" / "calibration-only" / "sleap-charuco", from_config(params),
@@ -256,7 +263,7 @@ def noise_models(folder: Path) -> dict:
     from rigbuild.io.cameras import read_cameras
     from rigbuild.synth.session import generate_calibration_only
 
-    base = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["params"]["calibrate"]
+    base = pipeline_calibrate_block()
     out = {"base_params": base, "variants": dict(NOISE_VARIANTS), "tiers": {}}
     for config, name in NOISE_TIERS:
         block = yaml.safe_load((ROOT / "config" / config).read_text())["sessions"][name]["synthetic"]
