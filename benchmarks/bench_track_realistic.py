@@ -1,13 +1,14 @@
 """Benchmark of issue 20: tracking on the realistic capture world, per level and per option, against ground truth.
 
-Scenes: the first two ROM sequences (rom00, rom01; 15 frames each) of a realistic ICT tier exactly as the tier has
-them (``ict_dev``: config/ict-dev.yaml, seed 21, the development actor; ``ict``: config/ict.yaml, seed 11, never
-tuned on; the tier's ``synthetic:`` block with ``rom.render_sequences: [0, 1]``: hand-painted dots 2 mm off
-their stencil sites, realistic skin, studio lights, Bayer, JPEG, motion blur, depth of field), generated once and
-cached in benchmarks/out/cache. Every frame is reconstructed once with the ground-truth cameras and the tiers'
-``params.reconstruct`` (cached beside the scene), so calibration error is left out and every variant tracks the
-same depth maps. As in the pipeline, the template is registered on rom00's neutral frame, which is every
-sequence's anchor, and each sequence is tracked from its own neutral frame.
+Scenes: the first two ROM sequences (rom00, rom01; 15 frames each; ``--sequences`` picks others, for example
+the mouth-opening ones) of a realistic ICT tier exactly as the tier has them (``ict_dev``: config/ict-dev.yaml,
+seed 21, the development actor; ``ict``: config/ict.yaml, seed 11, never tuned on; the tier's ``synthetic:`` block
+with ``rom.render_sequences`` set: hand-painted dots 2 mm off their stencil sites, realistic skin, studio lights,
+Bayer, JPEG, motion blur, depth of field), generated once and cached in benchmarks/out/cache. Every frame is
+reconstructed once with the ground-truth cameras and the tiers' ``params.reconstruct`` (cached beside the scene),
+so calibration error is left out and every variant tracks the same depth maps. As in the pipeline, the template
+is registered on the first rendered sequence's neutral frame, which is every sequence's anchor, and each sequence
+is tracked from its own neutral frame.
 
 A variant is a ``params.track`` block merged over the tier config's; always measured:
 
@@ -25,7 +26,8 @@ session (same seed, actor, ROM and images but the dots) with the painted dots pl
 each standard deviation; the generated sessions are cached beside the tier's.
 
 Run: ``.venv/bin/python benchmarks/bench_track_realistic.py [--scenes ict_dev ict] [--variant NAME=JSON ...]
-[--only NAME ...] [--dot-sweep [SD_MM ...]] [--out NAME]``; writes ``benchmarks/out/track_realistic.json`` (or ``--out``).
+[--only NAME ...] [--dot-sweep [SD_MM ...]] [--sequences I ...] [--out NAME]``; writes
+``benchmarks/out/track_realistic.json`` (or ``--out``).
 """
 
 from __future__ import annotations
@@ -60,8 +62,9 @@ KEYS = ("neutral_error_mm", "mean_error_mm", "p95_error_mm", "end_drift_mm", "vi
 
 
 def tier_scene(name: str, dot_sd: float | None = None) -> Path:
-    """The tier's first two ROM sequences, as the tier has them (generated once, cached); ``dot_sd``: the same
-    session with the painted dots placed off their stencil sites by this standard deviation (mm) instead."""
+    """The tier's ROM sequences :data:`RENDERED`, as the tier has them (generated once, cached; a folder per
+    sequence set); ``dot_sd``: the same session with the painted dots placed off their stencil sites by this
+    standard deviation (mm) instead."""
     import yaml
 
     from rigbuild.synth.session import generate_session
@@ -71,10 +74,10 @@ def tier_scene(name: str, dot_sd: float | None = None) -> Path:
     syn["calib_poses"] = 2
     syn["rom"]["render_sequences"] = RENDERED
     syn["performance"]["duration_s"] = 1.0
-    folder = CACHE / f"track_{name}"
+    folder = CACHE / (f"track_{name}" + ("" if RENDERED == [0, 1] else "_rom" + "_".join(map(str, RENDERED))))
     if dot_sd is not None and dot_sd != syn.get("dot_placement_sd_mm"):
         syn["dot_placement_sd_mm"] = float(dot_sd)
-        folder = CACHE / f"track_{name}_dots{dot_sd:g}"
+        folder = folder.with_name(f"{folder.name}_dots{dot_sd:g}")
     return cached_session(folder, syn, lambda out: generate_session(out, name, syn, progress=print))
 
 
@@ -176,8 +179,12 @@ def main() -> None:
     ap.add_argument("--dot-sweep", nargs="*", type=float, metavar="SD_MM",
                     help="also the dot-placement sweep: the tier's tracking on the same session with the dots "
                          f"placed off their stencil sites by these standard deviations (default {DOT_SWEEP_MM})")
+    ap.add_argument("--sequences", nargs="+", type=int, default=RENDERED, metavar="I",
+                    help=f"the tier's ROM sequences to render and track (default {RENDERED}; the first one's neutral "
+                         "is the registration's)")
     ap.add_argument("--out", default="track_realistic")
     a = ap.parse_args()
+    RENDERED[:] = a.sequences
     variants: dict = dict(BUILTIN)
     for v in a.variant:
         k, _, js = v.partition("=")

@@ -77,10 +77,21 @@ def test_ground_truth_tracking_metrics_from_files_exact(tmp_path):
     assert "errors" not in per["rom00"]
     assert values["all_vertices_mean_error_mm"] == pytest.approx(0.2 / 3, abs=1e-5)
     tracked[1, 2] += [0.0, 0.0, 0.9]  # one region vertex, one frame
-    values, _ = ground_truth_tracking_metrics(gt, tmp_path / "cameras.json", F, np.arange(4), to_cal(V),
-                                              ("rom00", 0), {"rom00": (to_cal(tracked), np.array([0, 1, 2]))},
-                                              regions={"lips": np.array([2])})
-    assert values["lips_mean_error_mm"] == pytest.approx((0.9 + 0.2) / 3, abs=1e-5)
+    neutral = V.copy()
+    neutral[2] += [0.0, 0.6, 0.0]  # the region vertex off by 0.6 mm on the registered neutral
+    second = tracked.copy()
+    second[:, 2] += [0.0, 0.0, 0.3]  # a second sequence: the region vertex off 0.3 mm more in every frame
+    np.savez(gt / "rom" / "rom01.npz", vertices=truth.astype(np.float32), frames=np.array([0, 1, 2]))
+    values, per = ground_truth_tracking_metrics(gt, tmp_path / "cameras.json", F, np.arange(4), to_cal(neutral),
+                                                ("rom00", 0), {"rom00": (to_cal(tracked), np.array([0, 1, 2])),
+                                                               "rom01": (to_cal(second), np.array([0, 1, 2]))},
+                                                regions={"lips": np.array([2])})
+    assert per["rom00"]["lips_mean_error_mm"] == pytest.approx((0.9 + 0.2) / 3, abs=1e-5)
+    assert per["rom01"]["lips_mean_error_mm"] == pytest.approx((0.3 + np.hypot(0.2, 0.3) + 1.2) / 3, abs=1e-5)
+    assert values["lips_mean_error_mm"] == pytest.approx(
+        (per["rom00"]["lips_mean_error_mm"] + per["rom01"]["lips_mean_error_mm"]) / 2, abs=1e-6)
+    assert values["neutral_lips_error_mm"] == pytest.approx(0.6, abs=1e-5)
+    assert values["neutral_error_mm"] == pytest.approx(0.6 / 4, abs=1e-5)
     with pytest.raises(ValueError, match="no frames"):
         ground_truth_tracking_metrics(gt, tmp_path / "cameras.json", F, np.arange(4), V, ("rom00", 7), {})
 

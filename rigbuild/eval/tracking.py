@@ -179,8 +179,9 @@ def ground_truth_tracking_metrics(gt_dir, cameras, faces: np.ndarray, face_verti
     the observed region prefixed ``visible_``; ``observed_face_vertices`` / ``observed_face_fraction``.
     Per sequence: :func:`tracking_summary`'s scalars and curves over the whole mask, and
     ``visible_{mean,p95,end}_error_mm`` over the observed region. ``regions`` (name -> vertex ids, e.g.
-    :func:`contour_regions`' lips and eyelids) add ``<name>_mean_error_mm`` over all tracked frames, and
-    ``all_vertices_mean_error_mm`` is over every vertex of the mesh (teeth, tongue, eyes, head included).
+    :func:`contour_regions`' lips and eyelids) add ``<name>_mean_error_mm`` over all tracked frames (and per
+    sequence), and ``neutral_<name>_error_mm`` on the registered neutral; ``all_vertices`` is every vertex of the
+    mesh (teeth, tongue, eyes, head included).
     """
     from pathlib import Path
 
@@ -202,13 +203,20 @@ def ground_truth_tracking_metrics(gt_dir, cameras, faces: np.ndarray, face_verti
     summaries, visible_summaries = {}, {}
     regions = {"all_vertices": np.arange(truth_neutral.shape[0]), **(regions or {})}
     region_errors = {k: [] for k in regions}
+    region_means = {}
     for name, (V, frame_ids) in sequences.items():
         tracked = points_to_ground_truth(np.asarray(V, np.float64), sim)
         truth = truth_frames(gt_dir, name, frame_ids)
         summaries[name] = tracking_summary(tracked, truth, faces, face_vertices, neutral_gt, truth_neutral)
         visible_summaries[name] = tracking_summary(tracked, truth, faces, observed, neutral_gt, truth_neutral)
+        region_means[name] = {}
         for k, ids in regions.items():
             region_errors[k].append(vertex_errors(tracked, truth, ids).ravel())
+            if region_errors[k][-1].size:
+                region_means[name][f"{k}_mean_error_mm"] = float(region_errors[k][-1].mean())
+    for k, ids in regions.items():  # each region on the registered neutral: what every frame starts from
+        if np.asarray(ids).size:
+            values[f"neutral_{k}_error_mm"] = float(vertex_errors(neutral_gt[None], truth_neutral[None], ids).mean())
     for k, errs in region_errors.items():
         if errs and np.concatenate(errs).size:
             values[f"{k}_mean_error_mm"] = float(np.concatenate(errs).mean())
@@ -217,6 +225,7 @@ def ground_truth_tracking_metrics(gt_dir, cameras, faces: np.ndarray, face_verti
     per = {n: {k: v for k, v in s.items() if not k.endswith("errors")} for n, s in summaries.items()}
     for n, s in visible_summaries.items():
         per[n].update({f"visible_{k}": s[k] for k in ("mean_error_mm", "p95_error_mm", "end_error_mm")})
+        per[n].update(region_means[n])
     return values, per
 
 
