@@ -11,10 +11,21 @@ from rigbuild.retarget.methods import wildcard as _method_wildcard
 
 
 def _retarget_rom_markers(wc):
-    """The actor's tracked ROM markers, one file per ROM sequence (session order); method ribera_fit_actor_rig:
-    the tracked vertices, sampled at the take's marker map on the personalized rig."""
-    name = "vertices.npz" if getattr(wc, "method", None) == RIBERA_ACTOR_RIG_METHOD else "markers.npz"
-    return [f"results/{wc.session}/track/{seq.name}/{name}" for seq in session_spec(wc.session).rom]
+    """The actor's tracked ROM markers (session order): with params.retarget.take_markers.rom 'take' (default),
+    every sequence read at the take's own markers on the tracked neutral (rule take_markers, one file); with
+    'marker_set', one file per sequence at the template's marker vertices; method ribera_fit_actor_rig: the
+    tracked vertices, sampled at the take's marker map on the personalized rig."""
+    if getattr(wc, "method", None) == RIBERA_ACTOR_RIG_METHOD:
+        return [f"results/{wc.session}/track/{seq.name}/vertices.npz" for seq in session_spec(wc.session).rom]
+    if _take_markers_params().rom == "take":
+        return [f"results/{wc.session}/take_markers/{wc.performance}/rom_markers.npz"]
+    return [f"results/{wc.session}/track/{seq.name}/markers.npz" for seq in session_spec(wc.session).rom]
+
+
+def _take_markers_params():
+    from rigbuild.retarget.params import take_markers_from_config
+
+    return take_markers_from_config(config["params"]["retarget"].get("take_markers", {}))
 
 
 def _retarget_neutral_frames(wc):
@@ -38,9 +49,41 @@ def _retarget_marker_map(wc):
 def retarget_metric_files(session):
     """The retargeting jobs' metrics fragments of a session (every method, every character). Metric keys name
     the method and the character, not the performance: only the first performance's jobs are gathered."""
+    take = [results(session, "take_markers", perf, "take_markers_metrics.json") for perf in performances(session)[:1]
+            if _take_markers_params().rom == "take"]
     return [results(session, "retarget", method, perf, character, "retarget_metrics.json")
             for perf in performances(session)[:1] for character in CHARACTERS for method in PIPELINE_METHODS] + \
-        actor_rig_metric_files(session)
+        actor_rig_metric_files(session) + take
+
+
+rule take_markers:
+    """Place the take's markers on the tracked neutral's skin (marker_map.json) and read every tracked ROM
+    sequence there (rom_markers.npz): the range of motion where the performance's hand-placed markers sit."""
+    input:
+        performance=lambda wc: performance_file(wc.session, wc.performance),
+        session_yaml=lambda wc: f"{session_dir(wc.session)}/session.yaml",
+        neutral="results/{session}/track/neutral.npz",
+        vertices=lambda wc: [f"results/{wc.session}/track/{seq.name}/vertices.npz"
+                             for seq in session_spec(wc.session).rom],
+    output:
+        marker_map="results/{session}/take_markers/{performance}/marker_map.json",
+        rom_markers="results/{session}/take_markers/{performance}/rom_markers.npz",
+        metrics="results/{session}/take_markers/{performance}/take_markers_metrics.json",
+    params:
+        session_dir=lambda wc: session_dir(wc.session),
+        track=lambda wc: config["params"].get("track", {}),
+        take_markers=lambda wc: config["params"]["retarget"].get("take_markers", {}),
+    log:
+        "logs/{session}/take_markers/{performance}.log",
+    benchmark:
+        "results/{session}/benchmarks/take_markers.{performance}.tsv"
+    threads: 1
+    resources:
+        mem_mb=3000,
+    conda:
+        "../environment.yml"
+    script:
+        "../scripts/take_markers.py"
 
 
 rule retarget_ribera:

@@ -120,3 +120,36 @@ def test_log_lines_stay_short(caplog):
         validate_take(m, NAMES, FPS, "noisy.c3d")
     msgs = _warnings(caplog)
     assert msgs and max(len(w) for w in msgs) < 400 and "more" in msgs[0]
+
+
+def test_marker_sequences_round_trip_and_feed_the_retargeting(tmp_path, caplog):
+    """Several ROM sequences at a take's markers in one file (rule take_markers): each comes back with its name,
+    its gaps and its frame numbers, is checked like any take (a spike becomes a gap, the warning names the file
+    and the sequence), and the retargeting's readers expand it into one take per sequence."""
+    from rigbuild.io.markers import is_marker_sequences, read_marker_sequences, write_marker_sequences
+    from rigbuild.retarget.stage import rom_takes, seol_neutral
+
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(5, 3, 3)) * 10
+    b = rng.normal(size=(4, 3, 3)) * 10
+    a[2, 1] = np.nan
+    b[3, 0] += 500.0  # one frame 500 mm off: faster than a face moves
+    path = tmp_path / "rom_markers.npz"
+    write_marker_sequences(path, {"rom00": (a, np.arange(5)), "rom01": (b, np.arange(10, 14))}, ["x", "y", "z"], 60.0)
+    assert is_marker_sequences(path) and not is_marker_sequences(tmp_path / "missing.npz")
+    with caplog.at_level(logging.WARNING):
+        seqs = read_marker_sequences(path)
+    assert [s for s, _ in seqs] == ["rom00", "rom01"]
+    np.testing.assert_allclose(seqs[0][1].markers, a.astype(np.float32), equal_nan=True)
+    assert np.isnan(seqs[1][1].markers[3, 0]).all() and "rom01" in caplog.text
+    assert seqs[0][1].names == ["x", "y", "z"] and seqs[0][1].fps == 60.0
+    single = tmp_path / "single.npz"
+    write_markers_npz(single, a[:, ::-1], ["z", "y", "x"], 60.0)
+    takes, sources = rom_takes([path, single])
+    assert len(takes) == 3 and "sequence rom01" in sources[1] and sources[2] == str(single)
+    Y = seol_neutral([path], [0, 1], ["x", "y", "z"])
+    assert Y.shape == (3, 3) and np.isfinite(Y).all()
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, sequence_names=np.array(["rom00"]), marker_names=np.array(["x"]), fps=30.0)
+    with pytest.raises(InputError, match="bad.npz"):
+        read_marker_sequences(bad)

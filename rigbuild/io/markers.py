@@ -13,7 +13,7 @@ import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -81,6 +81,50 @@ def write_markers_npz(path: str | os.PathLike, markers: np.ndarray, names: Seque
     """Write ``markers`` (F, M, 3) mm, ``marker_names``, ``fps`` (+ extras) to an npz."""
     save_npz(path, markers=np.asarray(markers, np.float32), marker_names=np.asarray(list(names), dtype=str),
              fps=np.float64(fps), **extra)
+
+
+def write_marker_sequences(path: str | os.PathLike, sequences: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                           names: Sequence[str], fps: float) -> None:
+    """Several takes of the same markers in one npz (the range of motion at a take's markers, rule
+    ``take_markers``): ``sequences`` name -> (markers (F, M, 3) mm with NaN gaps, frame numbers (F,)). Keys
+    ``sequence_names``, ``marker_names``, ``fps`` and ``markers__<name>``, ``frames__<name>`` per sequence."""
+    arrays = {}
+    for name, (markers, frames) in sequences.items():
+        arrays[f"markers__{name}"] = np.asarray(markers, np.float32)
+        arrays[f"frames__{name}"] = np.asarray(frames, np.int64)
+    save_npz(path, sequence_names=np.asarray(list(sequences), dtype=str),
+             marker_names=np.asarray(list(names), dtype=str), fps=np.float64(fps), **arrays)
+
+
+def is_marker_sequences(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is an npz of several sequences (:func:`write_marker_sequences`)."""
+    if Path(path).suffix.lower() != ".npz" or not Path(path).exists():
+        return False
+    with np.load(path, allow_pickle=False) as z:
+        return "sequence_names" in z.files
+
+
+def read_marker_sequences(path: str | os.PathLike) -> list[tuple[str, MarkerTake]]:
+    """The sequences of a :func:`write_marker_sequences` file as (name, take) in the file's order, each checked
+    as :func:`read_markers` checks a take (InputError naming the file and the sequence)."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            seqs = [str(s) for s in z["sequence_names"]]
+            names = [str(s) for s in z["marker_names"]]
+            fps = float(z["fps"])
+            data = [(z[f"markers__{s}"].astype(np.float64), z[f"frames__{s}"].astype(np.int64)) for s in seqs]
+    except (KeyError, ValueError, OSError) as exc:
+        raise InputError(f"not a marker-sequences npz ({exc})", path=path,
+                         fix="re-run rule take_markers for this performance") from None
+    out = []
+    for s, (markers, frames) in zip(seqs, data):
+        where = f"{path} (sequence {s})"
+        if markers.ndim != 3 or markers.shape[1:] != (len(names), 3):
+            raise InputError(f"sequence {s}: marker array has shape {markers.shape} for {len(names)} names",
+                             path=path, fix="re-run rule take_markers for this performance")
+        out.append((s, MarkerTake(validate_take(markers, names, fps, where, frames), names, fps)))
+    return out
 
 
 def frame_ranges(frames: Sequence[int], max_ranges: int = 12) -> str:

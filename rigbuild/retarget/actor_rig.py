@@ -406,6 +406,95 @@ def fit_marker_map(neutral: np.ndarray, deltas: np.ndarray, faces: np.ndarray, m
     return current
 
 
+def _icp_to_surface(neutral: np.ndarray, faces: np.ndarray, P: np.ndarray, vis: np.ndarray, R: np.ndarray,
+                    t: np.ndarray, iterations: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Point-to-plane ICP of each frame's markers onto a mesh's skin: the rigid motions ``(R, t)`` (B, 3, 3),
+    (B, 3) (mesh -> take, ``p = R x + t``) refined from the given ones so that the visible markers ``P`` (B, M, 3)
+    mm (``vis`` (B, M)) brought into the mesh's frame lie on its surface (distance along the closest points'
+    normals; sliding along the skin costs nothing, so the pose does not depend on where on the skin a marker is
+    assumed to sit). Returns the refined (R, t)."""
+    fr, mk = np.nonzero(vis)
+    B = P.shape[0]
+    for _ in range(int(iterations)):
+        q = np.einsum("nji,nj->ni", R[fr], P[fr, mk] - t[fr])  # R^T (p - t): the mesh's frame
+        fid, bc, dist = closest_surface_points(neutral, faces, q)
+        n = _triangle_normals(neutral, faces, fid)
+        c = np.zeros((B, 3))
+        np.add.at(c, fr, q)
+        c /= np.maximum(np.bincount(fr, minlength=B), 1)[:, None]
+        J = np.concatenate([np.cross(q - c[fr], n), n], axis=1)  # d(n . q)/d(omega, v), about the centroid
+        A = np.zeros((B, 6, 6))
+        np.add.at(A, fr, J[:, :, None] * J[:, None, :])
+        g = np.zeros((B, 6))
+        np.add.at(g, fr, J * dist[:, None])
+        x = -np.linalg.solve(A + 1e-9 * np.eye(6), g[:, :, None])[:, :, 0]  # the points' small motion (mesh frame)
+        dR = _rotation_exp(x[:, :3])
+        # q' = dR (q - c) + c + v  =>  x_mesh = dR R^T (p - t) + (c - dR c + v): compose into mesh -> take
+        shift = c - np.einsum("bij,bj->bi", dR, c) + x[:, 3:]
+        Rn = np.einsum("bij,bkj->bik", R, dR)  # (dR R^T)^T = R dR^T
+        t = t - np.einsum("bij,bj->bi", Rn, shift)
+        R = Rn
+    return R, t
+
+
+def place_markers_on_neutral(neutral: np.ndarray, faces: np.ndarray, markers: np.ndarray, initial: MarkerMap,
+                             neutral_fraction: float = 0.05, min_frames: int = 10, iterations: int = 3,
+                             trim: float = 2.5) -> MarkerMap:
+    """Each marker's own point on the skin of the actor's neutral mesh, from the take's most neutral frames: no
+    rig needed (the tracked neutral alone), so the range of motion can be read where the take's hand-placed
+    markers sit (:func:`tracked_markers_on_map`) by the retargeting methods that do not use the personalized rig.
+
+    neutral (V, 3) mm, faces (T, 3): the neutral mesh; markers (F, M, 3) mm in any rigid frame (NaN gaps), in
+    ``initial``'s marker order; initial : the starting map (e.g. the marker set's vertices,
+    :func:`vertex_marker_map`). Per round: every frame with 6 or more visible markers is fitted rigidly onto
+    the map's points on the neutral (batched Kabsch, three passes, a marker whose residual exceeds ``trim`` times
+    the frame's median residual (and 0.5 mm) left out); the ``neutral_fraction`` of frames with the smallest
+    RMS residual (at least ``min_frames``) are the take's closest to the neutral expression; their poses are
+    refined by point-to-plane ICP onto the neutral's skin (:func:`_icp_to_surface`: the pose comes from the
+    face's shape, not from where the map assumed the markers), their visible markers go to their closest points
+    on the skin, averaged per marker and put back on the skin by a closest-point query (the normal offset is
+    the mean signed distance). ``surface_rms_mm``: the RMS distance of those frames' markers to the skin in the
+    last round. A marker seen in none of the picked frames keeps its starting point (``placed`` False).
+    Returns the map after ``iterations`` rounds.
+    """
+    P = np.asarray(markers, dtype=np.float64)
+    neutral = np.asarray(neutral, dtype=np.float64)
+    F, M, _ = P.shape
+    vis = np.isfinite(P).all(2)
+    usable = vis.sum(1) >= 6
+    if not usable.any():
+        raise InputError(f"no frame of the take shows 6 or more of its {M} markers",
+                         fix="check the take's marker labels and gaps")
+    current = initial
+    for _ in range(int(iterations)):
+        ref = np.broadcast_to(current.points(neutral, faces), (F, M, 3))
+        keep = vis.copy()
+        for _ in range(3):
+            R, t = fit_rigid_motion_batched(ref, P, keep.astype(np.float64))  # neutral -> take, per frame
+            posed = np.einsum("fij,fmj->fmi", R, ref) + t[:, None]
+            r = np.linalg.norm(posed - np.where(vis[..., None], P, 0.0), axis=2)
+            med = np.array([np.median(r[f, vis[f]]) if vis[f].any() else 0.0 for f in range(F)])
+            keep = vis & (r <= np.maximum(trim * med, 0.5)[:, None])
+        rms = np.where(usable, np.sqrt((np.where(keep, r, 0.0) ** 2).sum(1) / np.maximum(keep.sum(1), 1)), np.inf)
+        n = min(max(int(min_frames), int(round(neutral_fraction * usable.sum()))), int(usable.sum()))
+        picked = np.argsort(rms, kind="stable")[:n]
+        Rp, tp = _icp_to_surface(neutral, faces, P[picked], keep[picked], R[picked], t[picked])
+        fr, mk = np.nonzero(vis[picked])
+        q = np.einsum("nji,nj->ni", Rp[fr], P[picked][fr, mk] - tp[fr])  # R^T (p - t): into the neutral's frame
+        fid, bc, dist = closest_surface_points(neutral, faces, q)
+        acc = np.zeros((M, 3))
+        np.add.at(acc, mk, points_on_surface(neutral, faces, fid, bc))
+        off = np.bincount(mk, weights=dist, minlength=M)
+        cnt = np.bincount(mk, minlength=M).astype(np.float64)
+        seen = cnt > 0
+        fid_m, bc_m, _ = closest_surface_points(neutral, faces, acc[seen] / cnt[seen, None])
+        face_ids, bary, offset = current.face_ids.copy(), current.barycentric.copy(), current.normal_offset.copy()
+        face_ids[seen], bary[seen], offset[seen] = fid_m, bc_m, off[seen] / cnt[seen]
+        current = MarkerMap(list(current.names), face_ids, bary, offset, float(np.sqrt(np.mean(dist**2))),
+                            placed=seen)
+    return current
+
+
 def marker_map_for_take(rig, names: Sequence[str], path=None) -> MarkerMap:
     """The starting map of a take on ``rig``: its marker set's vertices, for the take's markers ``names``
     (InputError naming the markers the rig's marker set lacks)."""

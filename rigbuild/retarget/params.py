@@ -330,6 +330,31 @@ class ActorRigParams:
     max_surface_distance_mm: float = 8.0
 
 
+#: where the methods without the personalized rig read the range of motion (``params.retarget.take_markers.rom``)
+ROM_MARKERS = ("take", "marker_set")
+
+
+@dataclass
+class TakeMarkerParams:
+    """The range of motion at a take's own markers (``params.retarget.take_markers``, rule ``take_markers``;
+    :func:`rigbuild.retarget.actor_rig.place_markers_on_neutral`).
+
+    rom : ``take``: the methods that do not use the personalized rig (Ribera's and Seol's) read the tracked
+        range of motion at the take's markers placed on the tracked neutral's skin (hand-placed markers sit
+        where the hand put them); ``marker_set``: at the template's marker-set vertices (the tracked
+        ``markers.npz``);
+    neutral_fraction, min_frames : the share of the take's frames (at least ``min_frames``) closest to the
+        neutral expression (smallest rigid residual) that place the markers; iterations : placing rounds;
+    trim : a marker whose rigid residual exceeds this many times the frame's median is left out of the frame's fit.
+    """
+
+    rom: str = "take"
+    neutral_fraction: float = 0.05
+    min_frames: int = 10
+    iterations: int = 3
+    trim: float = 2.5
+
+
 @dataclass
 class RetargetStageParams:
     """The whole ``params.retarget`` block."""
@@ -337,6 +362,7 @@ class RetargetStageParams:
     ribera: RiberaParams = field(default_factory=RiberaParams)
     seol: SeolParams = field(default_factory=SeolParams)
     actor_rig: ActorRigParams = field(default_factory=ActorRigParams)
+    take_markers: TakeMarkerParams = field(default_factory=TakeMarkerParams)
 
 
 # ----------------------------------------------------------------------------------------- checks
@@ -404,6 +430,28 @@ def check_actor_rig(p: ActorRigParams, where: str = f"{WHERE}.actor_rig") -> Act
     return p
 
 
+def check_take_markers(p: TakeMarkerParams, where: str = f"{WHERE}.take_markers") -> TakeMarkerParams:
+    _one_of(p.rom, ROM_MARKERS, f"{where}.rom")
+    if not 0.0 < float(p.neutral_fraction) <= 1.0:
+        raise InputError(f"'{where}.neutral_fraction' is {p.neutral_fraction!r}", path="config",
+                         fix="give the share of the take's frames that place the markers, in (0, 1]")
+    for name in ("min_frames", "iterations"):
+        v = getattr(p, name)
+        if not isinstance(v, int) or v < 1:
+            raise InputError(f"'{where}.{name}' must be an integer >= 1, got {v!r}", path="config")
+    if not float(p.trim) > 1.0:
+        raise InputError(f"'{where}.trim' is {p.trim!r}", path="config",
+                         fix="give a multiple of the frame's median residual above 1 (2.5 leaves out outliers)")
+    return p
+
+
+def take_markers_from_config(values: Mapping[str, Any] | None) -> TakeMarkerParams:
+    """``params.retarget.take_markers`` -> :class:`TakeMarkerParams` (checked)."""
+    if isinstance(values, TakeMarkerParams):
+        return check_take_markers(values)
+    return check_take_markers(from_mapping(TakeMarkerParams, values, f"{WHERE}.take_markers"))
+
+
 def actor_rig_from_config(values: Mapping[str, Any] | None) -> ActorRigParams:
     """``params.retarget.actor_rig`` -> :class:`ActorRigParams` (checked)."""
     if isinstance(values, ActorRigParams):
@@ -432,4 +480,5 @@ def from_config(values: Mapping[str, Any] | None) -> RetargetStageParams:
     check_ribera(p.ribera)
     check_seol(p.seol)
     check_actor_rig(p.actor_rig)
+    check_take_markers(p.take_markers)
     return p

@@ -1,4 +1,5 @@
-"""The retargeting jobs: rule ``retarget_ribera`` (:func:`run_ribera`) and rule ``retarget_seol`` (:func:`run_seol`).
+"""The retargeting jobs: rule ``retarget_ribera`` (:func:`run_ribera`), rule ``retarget_seol`` (:func:`run_seol`) and
+rule ``take_markers`` (:func:`run_take_markers`: the tracked range of motion at a take's own markers).
 
 Each reads the performance take, the actor's tracked ROM markers and the character rig, solves, and writes the
 weight curves (CSV, JSON), the glTF animation, a figure, and its metrics fragment
@@ -19,7 +20,7 @@ import numpy as np
 from rigbuild.errors import InputError
 from rigbuild.io.curves import write_weight_curves_csv, write_weight_curves_json
 from rigbuild.io.gltf_anim import write_gltf_animation
-from rigbuild.io.markers import read_markers
+from rigbuild.io.markers import MarkerTake, is_marker_sequences, read_marker_sequences, read_markers
 from rigbuild.io.metrics import write_metrics_fragment
 from rigbuild.io.rigs import read_rig_npz
 from rigbuild.params import as_dict
@@ -69,6 +70,84 @@ def one_input(files) -> str | None:
     if len(files) > 1:
         raise InputError(f"expected one file, got {len(files)}: {files[:3]}", path="rules")
     return files[0] if files else None
+
+
+def rom_takes(files: Sequence[Path]) -> tuple[list[MarkerTake], list[str]]:
+    """The range-of-motion takes of a list of marker files, in order, and where each comes from (for errors): a
+    file of several sequences (rule ``take_markers``, :func:`rigbuild.io.markers.write_marker_sequences`) gives
+    each of its sequences, any other marker file one take."""
+    takes, sources = [], []
+    for f in files:
+        if is_marker_sequences(f):
+            for name, take in read_marker_sequences(f):
+                takes.append(take)
+                sources.append(f"{f} (sequence {name})")
+        else:
+            takes.append(read_markers(f))
+            sources.append(str(f))
+    return takes, sources
+
+
+def run_take_markers(performance: Path, session_dir: Path, neutral: Path, vertices: Sequence[Path],
+                     track: Mapping[str, Any] | None, take_markers: Mapping[str, Any] | None, *,
+                     marker_map: Path, rom_markers: Path, metrics: Path) -> dict[str, Any]:
+    """Rule ``take_markers``: a take's markers placed on the tracked neutral's skin
+    (:func:`rigbuild.retarget.actor_rig.place_markers_on_neutral`) and the tracked range of motion read there.
+
+    performance : .c3d/.npz markers; session_dir : the session (its template rig and fps); neutral : the
+    tracked ``neutral.npz``; vertices : every ROM sequence's tracked ``vertices.npz`` (session order); track :
+    ``params.track`` (the template rig tracked with); take_markers : ``params.retarget.take_markers``. Writes
+    ``marker_map.json`` (marker -> face, barycentric, normal offset on the tracked topology, in the capture
+    frame of the tracked neutral), ``rom_markers.npz`` (every sequence's markers at the map, lost frames as gaps:
+    :func:`rigbuild.io.markers.write_marker_sequences`) and the fragment ``retarget.take_markers``."""
+    from pathlib import Path as _P
+
+    from rigbuild.io.atomic import write_json
+    from rigbuild.io.markers import write_marker_sequences
+    from rigbuild.retarget.actor_rig import marker_map_for_take, place_markers_on_neutral, tracked_markers_on_map
+    from rigbuild.retarget.params import take_markers_from_config
+    from rigbuild.session import read_session
+    from rigbuild.track.params import from_config as track_from_config
+    from rigbuild.track.stage import load_template
+
+    p = take_markers_from_config(take_markers)
+    spec = read_session(_P(session_dir))
+    template = load_template(spec, track_from_config(track))
+    take = read_markers(performance)
+    with np.load(neutral) as z:
+        if "vertices" not in z or z["vertices"].shape != template.neutral.shape:
+            raise InputError(f"the tracked neutral does not have the template's {template.n_vertices} vertices",
+                             path=neutral, fix="re-run rule track_neutral with the same params.track.template_rig")
+        neutral_v = z["vertices"].astype(np.float64)
+    t0 = time.perf_counter()
+    start = marker_map_for_take(template, take.names, path=performance)
+    mmap = place_markers_on_neutral(neutral_v, template.faces, take.markers, start, p.neutral_fraction,
+                                    p.min_frames, p.iterations, p.trim)
+    seconds = time.perf_counter() - t0
+    sequences = {}
+    for f in vertices:
+        with np.load(f) as z:
+            if "vertices" not in z:
+                raise InputError("a tracked sequence without vertices", path=f, fix="re-run the track rules")
+            lost = z["lost"] if "lost" in z else None
+            sequences[_P(f).parent.name] = (tracked_markers_on_map(z["vertices"], template.faces, mmap, lost),
+                                            z["frames"] if "frames" in z else np.arange(z["vertices"].shape[0]))
+    unplaced = [n for n, ok in zip(mmap.names, mmap.placed) if not ok]
+    if unplaced:
+        logging.getLogger("rigbuild.retarget").warning(
+            "%s: markers %s are gaps in every frame that places the markers: they keep their marker-set vertex",
+            performance, unplaced[:6])
+    write_json(marker_map, {"rig": str(track_from_config(track).template_for(spec)), "neutral": str(neutral),
+                            "performance": str(performance), "frame": "the tracked neutral's (capture) frame",
+                            "surface_rms_mm": mmap.surface_rms_mm, "markers": mmap.to_json()})
+    write_marker_sequences(rom_markers, sequences, mmap.names, spec.fps)
+    values = {"n_markers": len(mmap.names), "surface_rms_mm": mmap.surface_rms_mm, "markers_unplaced": len(unplaced),
+              "seconds": seconds}
+    write_metrics_fragment(metrics, "retarget", {"take_markers": values})
+    logging.getLogger("rigbuild.retarget").info(
+        "%s: %d markers placed on the tracked neutral in %.2f s (skin RMS %.2f mm); %d ROM sequences read there",
+        performance, len(mmap.names), seconds, mmap.surface_rms_mm, len(sequences))
+    return values
 
 
 def tracked_takes_on_map(files: Sequence[Path], rig_path: Path, marker_map_path: Path, fps: float) -> list:
@@ -164,7 +243,7 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
     if rig_at_markers is not None and all(str(f).endswith("vertices.npz") for f in files):
         takes = tracked_takes_on_map(files, actor_rig, marker_map, take.fps)
     else:
-        takes = [read_markers(f) for f in files]
+        takes, files = rom_takes(files)
     ts = make_training_set([t.markers for t in takes], [t.names for t in takes], list(neutral_frames or [0]), files)
     rig = read_rig_npz(rig_path)
     if rig.marker_vertices.size == 0:
@@ -210,17 +289,16 @@ def seol_marker_residual(res) -> float:
 
 def seol_neutral(files: Sequence[Path], frames: Sequence[int] | None, names: Sequence[str]) -> np.ndarray:
     """The actor's neutral (M, 3) mm in ``names`` order: the rigidly aligned mean of row ``frames[i]`` of each
-    tracked ROM marker file ``files[i]`` (default row 0 of each)."""
+    tracked ROM sequence ``i`` of ``files`` (:func:`rom_takes`; default row 0 of each)."""
     from rigbuild.retarget.common import average_neutral, reorder_markers
 
-    files = list(files)
-    frames = list(frames or [0] * len(files))
-    if len(frames) != len(files):
-        raise InputError(f"{len(files)} neutral marker files but {len(frames)} neutral frames", path="rules",
-                         fix="give one neutral frame per ROM marker file")
+    takes, sources = rom_takes(list(files))
+    frames = list(frames or [0] * len(takes))
+    if len(frames) != len(takes):
+        raise InputError(f"{len(takes)} neutral marker sequences but {len(frames)} neutral frames", path="rules",
+                         fix="give one neutral frame per ROM sequence")
     rows = []
-    for path, frame in zip(files, frames):
-        rom = read_markers(path)
+    for rom, path, frame in zip(takes, sources, frames):
         if not 0 <= int(frame) < rom.markers.shape[0]:
             raise InputError(f"neutral frame {frame} outside the {rom.markers.shape[0]} frames", path=path)
         rows.append(reorder_markers(rom.markers, rom.names, names, what="neutral sequence", path=path)[int(frame)])
