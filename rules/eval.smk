@@ -192,7 +192,29 @@ def eval_retarget_metric_files(session):
     return [f"results/{session}/eval/retarget/{method}/{perf}/{character}/retarget_metrics.json"
             for perf in performances(session)[:1] for character in CHARACTERS for method in PIPELINE_METHODS] + \
         [f"results/{session}/eval/{source}/{perf}/actor_rig_metrics.json" for perf in performances(session)[:1]
-         for source in ACTOR_RIG_SOURCES]
+         for source in ACTOR_RIG_SOURCES] + \
+        [f"results/{session}/eval/take_markers/{perf}/take_markers_metrics.json" for perf in performances(session)[:1]
+         if _take_markers_params().rom == "take"]
+
+
+rule eval_take_markers:
+    """The take's markers placed on the tracked neutral vs their true skin points (and the marker set's vertices
+    they started from): retarget.take_markers.{marker_map_skin_error_mm, marker_set_skin_error_mm}."""
+    input:
+        marker_map="results/{session}/take_markers/{performance}/marker_map.json",
+        truth=lambda wc: ground_truth_file(wc.session, f"performances/{wc.performance}.npz"),
+        actor_rig=lambda wc: ground_truth_file(wc.session, "actor_rig.npz"),
+    output:
+        metrics="results/{session}/eval/take_markers/{performance}/take_markers_metrics.json",
+    log:
+        "logs/{session}/eval/take_markers/{performance}.log",
+    threads: 1
+    resources:
+        mem_mb=1000,
+    conda:
+        "../environment.yml"
+    script:
+        "../scripts/eval_take_markers.py"
 
 
 rule eval_actor_rig:

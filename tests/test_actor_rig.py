@@ -303,3 +303,28 @@ def test_take_marker_params_are_checked():
                 {"iterations": 0}, {"trim": 1.0}, {"neutral_fractoin": 0.1}):
         with pytest.raises(InputError):
             take_markers_from_config(bad)
+
+
+def test_eval_of_the_take_markers_is_exact_on_a_known_placement(tmp_path, procedural_take):
+    """The take-marker map's ground-truth evaluation: a map at the markers' true skin points scores 0 mm, and
+    the marker set's vertices score their exact distance to those points."""
+    import json
+
+    from rigbuild.eval.retarget import run_eval_take_markers
+    from rigbuild.io.rigs import write_rig_npz
+
+    rig, W, true, start, P = procedural_take
+    write_rig_npz(tmp_path / "actor.npz", rig)
+    rest = true.points(rig.neutral, rig.faces)
+    R = Rotation.from_euler("y", 20, degrees=True).as_matrix()
+    truth = {"shape_names": np.asarray(rig.shape_names), "weights": np.zeros((1, len(rig.shape_names))),
+             "markers": (rest @ R.T + [5.0, -3.0, 400.0])[None], "rotation": R[None],
+             "translation": np.array([[5.0, -3.0, 400.0]]), "marker_names": np.asarray(true.names)}
+    np.savez(tmp_path / "truth.npz", **truth)
+    (tmp_path / "map.json").write_text(json.dumps({"markers": true.to_json()}))
+    m = run_eval_take_markers(tmp_path / "map.json", tmp_path / "truth.npz", tmp_path / "actor.npz",
+                              tmp_path / "metrics.json")
+    assert m["marker_map_skin_error_mm"] == pytest.approx(0.0, abs=1e-4)  # the rig file stores float32
+    expected = np.linalg.norm(start.points(rig.neutral, rig.faces) - rest, axis=1).mean()
+    assert m["marker_set_skin_error_mm"] == pytest.approx(expected, rel=1e-4)
+    assert json.loads((tmp_path / "metrics.json").read_text())["retarget"]["take_markers"] == m

@@ -112,6 +112,8 @@ STAGE_BOUNDS = {
     "retarget.seol.template.weight_mae": ("<", 0.5),
     "retarget.actor_rig_weights.mean_correlation": (">", 0.5),
     "retarget.semantic_actor_rig.template.mean_correlation": (">", 0.5),
+    # the take's markers on the tracked neutral: the demo measured 0.82 mm (its marker-set vertices 2.68 mm)
+    "retarget.take_markers.marker_map_skin_error_mm": ("<", 2.0),
 }
 
 

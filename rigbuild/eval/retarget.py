@@ -239,3 +239,37 @@ def run_eval_actor_rig(weights_csv: str | os.PathLike, marker_map_json: str | os
                             "marker_map_placed_error_mm")
     write_metrics_fragment(metrics_path, "retarget", {f"{source}_weights": {k: m[k] for k in keys}})
     return m
+
+
+def run_eval_take_markers(marker_map_json: str | os.PathLike, truth_npz: str | os.PathLike,
+                          actor_rig: str | os.PathLike, metrics_path: str | os.PathLike) -> dict:
+    """Rule ``eval_take_markers``: a take's markers placed on the tracked neutral (rule ``take_markers``) vs their
+    true skin points: the map's triangles and barycentric coordinates on the actor's neutral against the true ones
+    (:func:`marker_map_errors`' skin error), and the same for the marker set's vertices the map started from (the
+    actor rig's ``marker_vertices``: where the methods read the range of motion without the map). Fragment
+    ``retarget.take_markers.{marker_map_skin_error_mm, marker_map_skin_p95_error_mm, marker_set_skin_error_mm}``."""
+    import json
+
+    from rigbuild.geometry.mesh import points_on_surface
+    from rigbuild.io.metrics import write_metrics_fragment
+    from rigbuild.io.rigs import read_rig_npz
+
+    with np.load(truth_npz, allow_pickle=False) as z:
+        truth = {k: z[k] for k in z.files}
+    actor = read_rig_npz(actor_rig)
+    try:
+        markers = json.loads(open(marker_map_json).read())["markers"]
+    except (OSError, ValueError, KeyError) as e:
+        raise InputError(f"cannot read the take's marker map ({e})", path=marker_map_json,
+                         fix="re-run rule take_markers for this performance") from None
+    _, skin = marker_map_errors(markers, actor, truth, None, marker_map_json)
+    index = {str(n): i for i, n in enumerate(actor.marker_names)}
+    names = [str(n) for n in truth["marker_names"]]
+    true_faces, true_bary = true_marker_placement(actor, truth)
+    ref = points_on_surface(actor.neutral, actor.faces, true_faces, true_bary)
+    start = np.linalg.norm(actor.neutral[actor.marker_vertices[[index[n] for n in names]]] - ref, axis=1)
+    values = {"marker_map_skin_error_mm": float(skin.mean()),
+              "marker_map_skin_p95_error_mm": float(np.percentile(skin, 95)),
+              "marker_set_skin_error_mm": float(start.mean())}
+    write_metrics_fragment(metrics_path, "retarget", {"take_markers": values})
+    return values
