@@ -351,6 +351,24 @@ def _triangle_normals(vertices: np.ndarray, faces: np.ndarray, face_ids: np.ndar
     return nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
 
 
+def _averaged_map(current: MarkerMap, neutral: np.ndarray, faces: np.ndarray, marker: np.ndarray,
+                  points: np.ndarray, offsets: np.ndarray, surface_rms_mm: float) -> MarkerMap:
+    """``current`` with each marker moved to the mean of its skin points on the neutral: ``points`` (N, 3) mm on
+    the neutral's skin and their normal ``offsets`` (N,) mm, ``marker`` (N,) the marker index of each; the mean
+    point is put back on the skin by a closest-point query, the offset is the mean offset. Markers without a
+    point keep theirs (``placed`` False)."""
+    M = len(current.names)
+    acc = np.zeros((M, 3))
+    np.add.at(acc, marker, points)
+    cnt = np.bincount(marker, minlength=M).astype(np.float64)
+    off = np.bincount(marker, weights=offsets, minlength=M)
+    seen = cnt > 0
+    fid, bc, _ = closest_surface_points(neutral, faces, acc[seen] / cnt[seen, None])
+    face_ids, bary, offset = current.face_ids.copy(), current.barycentric.copy(), current.normal_offset.copy()
+    face_ids[seen], bary[seen], offset[seen] = fid, bc, off[seen] / cnt[seen]
+    return MarkerMap(list(current.names), face_ids, bary, offset, surface_rms_mm, placed=seen)
+
+
 def fit_marker_map(neutral: np.ndarray, deltas: np.ndarray, faces: np.ndarray, markers: np.ndarray,
                    names: Sequence[str], initial: MarkerMap, n_frames: int = 24, iterations: int = 2,
                    lambda_l1: float = 0.0, bounds: Sequence[float] = (0.0, 1.0),
@@ -380,10 +398,7 @@ def fit_marker_map(neutral: np.ndarray, deltas: np.ndarray, faces: np.ndarray, m
         sol = solve_frames_point_to_plane(b0, D, normals, Ps, lambda_l1=lambda_l1, bounds=bounds,
                                           observable_mm=observable_mm, pose=pose)
         pose = (sol.rotations, sol.translations)
-        acc = np.zeros((len(current.names), 3))
-        off = np.zeros(len(current.names))
-        cnt = np.zeros(len(current.names))
-        sq = []
+        marker, pts, offs = [], [], []
         for i in range(frames.size):
             v = vs[i]
             if v.sum() < 3:
@@ -391,18 +406,13 @@ def fit_marker_map(neutral: np.ndarray, deltas: np.ndarray, faces: np.ndarray, m
             q = (Ps[i, v] - sol.translations[i]) @ sol.rotations[i]  # rig frame
             posed = neutral + np.einsum("k,kvc->vc", sol.weights[i], deltas)
             fid, bc, dist = closest_surface_points(posed, faces, q)
-            sq.append(dist**2)
-            acc[v] += points_on_surface(neutral, faces, fid, bc)
-            off[v] += dist
-            cnt[v] += 1
-        seen = cnt > 0
-        fid, bc, _ = closest_surface_points(neutral, faces, acc[seen] / cnt[seen, None])
-        face_ids = current.face_ids.copy()
-        bary = current.barycentric.copy()
-        offset = current.normal_offset.copy()
-        face_ids[seen], bary[seen], offset[seen] = fid, bc, off[seen] / cnt[seen]
-        rms = float(np.sqrt(np.mean(np.concatenate(sq)))) if sq else float("nan")
-        current = MarkerMap(list(current.names), face_ids, bary, offset, rms, placed=seen)
+            marker.append(np.flatnonzero(v))
+            pts.append(points_on_surface(neutral, faces, fid, bc))
+            offs.append(dist)
+        dist = np.concatenate(offs) if offs else np.zeros(0)
+        current = _averaged_map(current, neutral, faces, np.concatenate(marker or [np.zeros(0, np.int64)]),
+                                np.concatenate(pts or [np.zeros((0, 3))]), dist,
+                                float(np.sqrt(np.mean(dist**2))) if dist.size else float("nan"))
     return current
 
 
@@ -482,16 +492,8 @@ def place_markers_on_neutral(neutral: np.ndarray, faces: np.ndarray, markers: np
         fr, mk = np.nonzero(vis[picked])
         q = np.einsum("nji,nj->ni", Rp[fr], P[picked][fr, mk] - tp[fr])  # R^T (p - t): into the neutral's frame
         fid, bc, dist = closest_surface_points(neutral, faces, q)
-        acc = np.zeros((M, 3))
-        np.add.at(acc, mk, points_on_surface(neutral, faces, fid, bc))
-        off = np.bincount(mk, weights=dist, minlength=M)
-        cnt = np.bincount(mk, minlength=M).astype(np.float64)
-        seen = cnt > 0
-        fid_m, bc_m, _ = closest_surface_points(neutral, faces, acc[seen] / cnt[seen, None])
-        face_ids, bary, offset = current.face_ids.copy(), current.barycentric.copy(), current.normal_offset.copy()
-        face_ids[seen], bary[seen], offset[seen] = fid_m, bc_m, off[seen] / cnt[seen]
-        current = MarkerMap(list(current.names), face_ids, bary, offset, float(np.sqrt(np.mean(dist**2))),
-                            placed=seen)
+        current = _averaged_map(current, neutral, faces, mk, points_on_surface(neutral, faces, fid, bc), dist,
+                                float(np.sqrt(np.mean(dist**2))))
     return current
 
 

@@ -104,7 +104,7 @@ def run_take_markers(performance: Path, session_dir: Path, neutral: Path, vertic
 
     from rigbuild.io.atomic import write_json
     from rigbuild.io.markers import write_marker_sequences
-    from rigbuild.retarget.actor_rig import marker_map_for_take, place_markers_on_neutral, tracked_markers_on_map
+    from rigbuild.retarget.actor_rig import marker_map_for_take, place_markers_on_neutral
     from rigbuild.retarget.params import take_markers_from_config
     from rigbuild.session import read_session
     from rigbuild.track.params import from_config as track_from_config
@@ -124,14 +124,8 @@ def run_take_markers(performance: Path, session_dir: Path, neutral: Path, vertic
     mmap = place_markers_on_neutral(neutral_v, template.faces, take.markers, start, p.neutral_fraction,
                                     p.min_frames, p.iterations, p.trim)
     seconds = time.perf_counter() - t0
-    sequences = {}
-    for f in vertices:
-        with np.load(f) as z:
-            if "vertices" not in z:
-                raise InputError("a tracked sequence without vertices", path=f, fix="re-run the track rules")
-            lost = z["lost"] if "lost" in z else None
-            sequences[_P(f).parent.name] = (tracked_markers_on_map(z["vertices"], template.faces, mmap, lost),
-                                            z["frames"] if "frames" in z else np.arange(z["vertices"].shape[0]))
+    on_map = tracked_sequences_on_map(vertices, template.faces, mmap)
+    sequences = {_P(f).parent.name: seq for f, seq in zip(vertices, on_map)}
     unplaced = [n for n, ok in zip(mmap.names, mmap.placed) if not ok]
     if unplaced:
         logging.getLogger("rigbuild.retarget").warning(
@@ -150,26 +144,36 @@ def run_take_markers(performance: Path, session_dir: Path, neutral: Path, vertic
     return values
 
 
-def tracked_takes_on_map(files: Sequence[Path], rig_path: Path, marker_map_path: Path, fps: float) -> list:
-    """The tracked ROM sequences (``vertices.npz``: vertices F x V x 3 mm, lost F) sampled at a take's marker map
-    on the personalized rig (:func:`rigbuild.retarget.actor_rig.tracked_markers_on_map`), as marker takes."""
-    import json
+def tracked_sequences_on_map(files: Sequence[Path], faces: np.ndarray,
+                             marker_map) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each tracked ROM sequence (``vertices.npz``: vertices F x V x 3 mm, frames, lost) read at a marker map's skin
+    points (:func:`rigbuild.retarget.actor_rig.tracked_markers_on_map`; lost frames are gaps): (markers (F, M, 3)
+    mm, frame numbers (F,)) per file."""
+    from rigbuild.retarget.actor_rig import tracked_markers_on_map
 
-    from rigbuild.io.markers import MarkerTake
-    from rigbuild.io.rigs import load_rig
-    from rigbuild.retarget.actor_rig import MarkerMap, tracked_markers_on_map
-
-    faces = load_rig(rig_path, units="mm").faces
-    mmap = MarkerMap.from_json(json.loads(open(marker_map_path).read())["markers"], path=marker_map_path)
-    takes = []
+    out = []
     for f in files:
         with np.load(f) as z:
             if "vertices" not in z:
                 raise InputError("a tracked sequence without vertices", path=f, fix="re-run the track rules")
             lost = z["lost"] if "lost" in z else None
-            markers = tracked_markers_on_map(z["vertices"], faces, mmap, lost)
-        takes.append(MarkerTake(markers, list(mmap.names), float(fps)))
-    return takes
+            frames = z["frames"] if "frames" in z else np.arange(z["vertices"].shape[0])
+            out.append((tracked_markers_on_map(z["vertices"], faces, marker_map, lost), frames))
+    return out
+
+
+def tracked_takes_on_map(files: Sequence[Path], rig_path: Path, marker_map_path: Path, fps: float) -> list:
+    """The tracked ROM sequences (:func:`tracked_sequences_on_map`) at a take's marker map on the personalized
+    rig, as marker takes."""
+    import json
+
+    from rigbuild.io.rigs import load_rig
+    from rigbuild.retarget.actor_rig import MarkerMap
+
+    faces = load_rig(rig_path, units="mm").faces
+    mmap = MarkerMap.from_json(json.loads(open(marker_map_path).read())["markers"], path=marker_map_path)
+    return [MarkerTake(markers, list(mmap.names), float(fps))
+            for markers, _ in tracked_sequences_on_map(files, faces, mmap)]
 
 
 def actor_rig_for_method(method: str, actor_rig_method: str, rule: str, actor_rig: str | None,
