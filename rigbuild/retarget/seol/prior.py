@@ -50,7 +50,12 @@ def build_pca_prior(training_deltas: np.ndarray, rel_tol: float = 1e-9) -> PcaPr
     X = np.asarray(training_deltas, dtype=np.float64)
     mean = X.mean(0)
     Xc = X - mean
-    _, sv, Vt = np.linalg.svd(Xc, full_matrices=False)
+    try:
+        _, sv, Vt = np.linalg.svd(Xc, full_matrices=False)
+    except np.linalg.LinAlgError:  # LAPACK's divide and conquer (gesdd) does not converge on some matrices
+        import scipy.linalg
+
+        _, sv, Vt = scipy.linalg.svd(Xc, full_matrices=False, lapack_driver="gesvd")
     lam = sv**2 / X.shape[0]
     keep = lam > rel_tol * max(lam.max(initial=0.0), 1e-300)
     if not keep.any():
