@@ -2,7 +2,8 @@
 # per (session, performance, character, method), method in RIBERA_METHODS (rigbuild/retarget/methods.py: the
 # method registry). Needs from common.smk: session_spec, performances, performance_file, CHARACTERS, results();
 # characters.smk builds results/{session}/characters/{character}.npz; tracking writes
-# results/{session}/track/{sequence}/markers.npz. Params: config["params"]["retarget"]["ribera"]
+# results/{session}/track/{sequence}/markers.npz and vertices.npz; rule take_markers (below) reads every sequence at
+# the take's own markers (params.retarget.take_markers). Params: config["params"]["retarget"]["ribera"]
 # (rigbuild/retarget/params.py RiberaParams). Method ribera_fit_actor_rig (RIBERA_ACTOR_RIG_METHOD) also reads the
 # personalized rig (personalize.smk) and the take's marker map on it (rule actor_rig_weights,
 # retarget_actor_rig.smk); the other methods' jobs do not depend on them.
