@@ -472,6 +472,7 @@ def place_markers_on_neutral(neutral: np.ndarray, faces: np.ndarray, markers: np
     F, M, _ = P.shape
     vis = np.isfinite(P).all(2)
     usable = vis.sum(1) >= 6
+    seen_any = vis.any(1)
     if not usable.any():
         raise InputError(f"no frame of the take shows 6 or more of its {M} markers",
                          fix="check the take's marker labels and gaps")
@@ -483,7 +484,8 @@ def place_markers_on_neutral(neutral: np.ndarray, faces: np.ndarray, markers: np
             R, t = fit_rigid_motion_batched(ref, P, keep.astype(np.float64))  # neutral -> take, per frame
             posed = np.einsum("fij,fmj->fmi", R, ref) + t[:, None]
             r = np.linalg.norm(posed - np.where(vis[..., None], P, 0.0), axis=2)
-            med = np.array([np.median(r[f, vis[f]]) if vis[f].any() else 0.0 for f in range(F)])
+            med = np.zeros(F)  # each frame's median residual over its visible markers
+            med[seen_any] = np.nanmedian(np.where(vis[seen_any], r[seen_any], np.nan), axis=1)
             keep = vis & (r <= np.maximum(trim * med, 0.5)[:, None])
         rms = np.where(usable, np.sqrt((np.where(keep, r, 0.0) ** 2).sum(1) / np.maximum(keep.sum(1), 1)), np.inf)
         n = min(max(int(min_frames), int(round(neutral_fraction * usable.sum()))), int(usable.sum()))
