@@ -324,8 +324,8 @@ class ActorRigParams:
     bounds: list = field(default_factory=lambda: [0.0, 1.0])
     sweeps: int = 60
     tol: float = 1e-4
-    map_frames: int = 24
-    map_iterations: int = 2
+    map_frames: int = 120
+    map_iterations: int = 4
     observable_mm: float = 0.05
     max_surface_distance_mm: float = 8.0
 
