@@ -33,6 +33,7 @@ from rigbuild.errors import InputError
 from rigbuild.geometry.box_qp import solve_box_qp_batched
 from rigbuild.geometry.mesh import closest_surface_points, points_on_surface
 from rigbuild.geometry.rigid import fit_rigid_motion_batched
+from rigbuild.progress import progress
 
 log = logging.getLogger(__name__)
 
@@ -392,7 +393,7 @@ def fit_marker_map(neutral: np.ndarray, deltas: np.ndarray, faces: np.ndarray, m
     current = initial
     rms = float("nan")
     pose = None
-    for _ in range(int(iterations)):
+    for _ in progress(range(int(iterations)), "placing the markers on the rig", unit="round"):
         b0, D = sample_rig_at_markers(neutral, deltas, faces, current)
         normals = _triangle_normals(neutral, faces, current.face_ids)
         sol = solve_frames_point_to_plane(b0, D, normals, Ps, lambda_l1=lambda_l1, bounds=bounds,
