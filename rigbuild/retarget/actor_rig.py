@@ -391,7 +391,6 @@ def fit_marker_map(neutral: np.ndarray, deltas: np.ndarray, faces: np.ndarray, m
     frames = _placing_frames(vis, n_frames)
     Ps, vs = P[frames], vis[frames]
     current = initial
-    rms = float("nan")
     pose = None
     for _ in progress(range(int(iterations)), "placing the markers on the rig", unit="round"):
         b0, D = sample_rig_at_markers(neutral, deltas, faces, current)
@@ -410,10 +409,10 @@ def fit_marker_map(neutral: np.ndarray, deltas: np.ndarray, faces: np.ndarray, m
             marker.append(np.flatnonzero(v))
             pts.append(points_on_surface(neutral, faces, fid, bc))
             offs.append(dist)
-        dist = np.concatenate(offs) if offs else np.zeros(0)
+        offsets = np.concatenate(offs) if offs else np.zeros(0)
         current = _averaged_map(current, neutral, faces, np.concatenate(marker or [np.zeros(0, np.int64)]),
-                                np.concatenate(pts or [np.zeros((0, 3))]), dist,
-                                float(np.sqrt(np.mean(dist**2))) if dist.size else float("nan"))
+                                np.concatenate(pts or [np.zeros((0, 3))]), offsets,
+                                float(np.sqrt(np.mean(offsets**2))) if offsets.size else float("nan"))
     return current
 
 
