@@ -27,6 +27,21 @@ def _mask_box(mask: np.ndarray, pad: int) -> tuple[int, int, int, int] | None:
     return max(rows[0] - pad, 0), min(rows[-1] + pad + 1, H), max(cols[0] - pad, 0), min(cols[-1] + pad + 1, W)
 
 
+def _on_mask_box(detect, image_rgb: np.ndarray, p, mask: np.ndarray, pad: int
+                 ) -> tuple[np.ndarray, np.ndarray] | None:
+    """``detect(image, p, mask)`` on the box of ``mask``'s pixels grown by ``pad`` px (a detector's filters
+    reach that far), its centres shifted back to the whole image: (centres (N, 2), areas (N,)); no dots for an
+    empty mask; None when the box is the whole image (the caller detects on it as it is)."""
+    box = _mask_box(mask, pad)
+    if box is None:
+        return np.zeros((0, 2)), np.zeros(0)
+    if box == (0, mask.shape[0], 0, mask.shape[1]):
+        return None
+    y0, y1, x0, x1 = box
+    c, a = detect(np.asarray(image_rgb)[y0:y1, x0:x1], p, mask[y0:y1, x0:x1])
+    return c + [x0, y0], a
+
+
 def detect_dots(image_rgb: np.ndarray, params: DotParams | None = None, mask: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Detect painted dots in an RGB image (H, W, 3) uint8 with ``params.detector``: ``threshold`` (dark grey
@@ -50,13 +65,10 @@ def _detect_threshold(image_rgb: np.ndarray, p: DotParams, mask: np.ndarray | No
     the local background and its red-minus-blue below ``chroma`` times it; components of [min_area, max_area]
     px and fill ratio >= ``min_fill`` are dots (darkness-weighted centroids)."""
     if mask is not None:  # work on the mask's box, padded past the blur and background filters' reach
-        box = _mask_box(mask, p.background_px + int(np.ceil(4 * p.blur_sigma)) + 2)
-        if box is None:
-            return np.zeros((0, 2)), np.zeros(0)
-        y0, y1, x0, x1 = box
-        if box != (0, mask.shape[0], 0, mask.shape[1]):
-            c, a = _detect_threshold(np.asarray(image_rgb)[y0:y1, x0:x1], p, mask[y0:y1, x0:x1])
-            return c + [x0, y0], a
+        found = _on_mask_box(_detect_threshold, image_rgb, p, mask,
+                             p.background_px + int(np.ceil(4 * p.blur_sigma)) + 2)
+        if found is not None:
+            return found
     img = np.asarray(image_rgb, dtype=np.float32)
     b = cv2.GaussianBlur(img, (0, 0), p.blur_sigma) if p.blur_sigma > 0 else img
     mx = np.maximum(np.maximum(b[..., 0], b[..., 1]), b[..., 2])
@@ -142,13 +154,10 @@ def _detect_contrast(image_rgb: np.ndarray, p: ContrastDotParams, mask: np.ndarr
         mask = cv2.morphologyEx(np.asarray(mask, np.uint8), cv2.MORPH_CLOSE,
                                 cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
         mask = _fill_small_holes(mask, p.max_area)
-        box = _mask_box(mask, p.background_px + int(np.ceil(4 * (p.blur_sigma + max(p.scales_px)))) + 2)
-        if box is None:
-            return np.zeros((0, 2)), np.zeros(0)
-        y0, y1, x0, x1 = box
-        if box != (0, mask.shape[0], 0, mask.shape[1]):
-            c, a = _contrast_peaks(np.asarray(image_rgb)[y0:y1, x0:x1], p, mask[y0:y1, x0:x1])
-            return c + [x0, y0], a
+        found = _on_mask_box(_contrast_peaks, image_rgb, p, mask,
+                             p.background_px + int(np.ceil(4 * (p.blur_sigma + max(p.scales_px)))) + 2)
+        if found is not None:
+            return found
     return _contrast_peaks(image_rgb, p, mask)
 
 
