@@ -224,6 +224,7 @@ rule eval_actor_rig:
     input:
         weights="results/{session}/{source}/{performance}/weights.csv",
         marker_map="results/{session}/{source}/{performance}/marker_map.json",
+        solve="results/{session}/{source}/{performance}/solve.npz",
         truth=lambda wc: ground_truth_file(wc.session, f"performances/{wc.performance}.npz"),
         actor_rig=lambda wc: ground_truth_file(wc.session, "actor_rig.npz"),
     output:

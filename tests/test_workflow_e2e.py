@@ -137,6 +137,7 @@ def test_metrics_hold_every_stage(e2e_run):
                 "retarget.ribera_paper.template.mean_correlation",
                 "retarget.rbf_baseline.template.mean_correlation", "retarget.seol.template.velocity_error",
                 "retarget.actor_rig_weights.mean_correlation", "retarget.actor_rig_weights.marker_map_error_mm",
+                "retarget.actor_rig_weights.unrefined_mean_correlation",
                 "retarget.template_rig_weights.mean_correlation",
                 "retarget.semantic_actor_rig.template.mean_correlation"):
         assert key in flat and flat[key] is not None, key

@@ -199,13 +199,16 @@ def marker_map_errors(marker_map: Mapping[str, Any], actor, truth: Mapping[str, 
 
 def run_eval_actor_rig(weights_csv: str | os.PathLike, marker_map_json: str | os.PathLike,
                        truth_npz: str | os.PathLike, actor_rig: str | os.PathLike, metrics_path: str | os.PathLike,
-                       details_path: str | os.PathLike, source: str = "actor_rig") -> dict:
+                       details_path: str | os.PathLike, source: str = "actor_rig",
+                       solve_npz: str | os.PathLike | None = None) -> dict:
     """Rule ``eval_actor_rig``: the actor weights solved from a rig (the personalized one, or the template for
     ``source`` ``template_rig``) vs the true performance weights (:func:`retarget_metrics`), and the marker map
     vs the markers' true skin points (:func:`marker_map_errors`; the map's ``rig`` is read from the map).
     Fragment ``retarget.<source>_weights.{weight_mae, mean_correlation, unobservable_mae, marker_map_error_mm,
     marker_map_p95_error_mm, marker_map_skin_error_mm, marker_map_placed_error_mm}`` (the last over the markers
-    seen in a placing frame; the headline counts every marker); every number at ``details_path``."""
+    seen in a placing frame; the headline counts every marker), and, when the job's ``solve_npz`` holds the solve
+    from the unrefined rig (``params.retarget.actor_rig.refine_iterations``), ``unrefined_mean_correlation`` and
+    ``unrefined_weight_mae`` beside them; every number at ``details_path``."""
     import json
 
     from rigbuild.io.atomic import write_json
@@ -234,9 +237,18 @@ def run_eval_actor_rig(weights_csv: str | os.PathLike, marker_map_json: str | os
     m["marker_map_placed_error_mm"] = float(err[placed].mean()) if placed.any() else float("nan")
     m["markers_unplaced"] = int((~placed).sum())
     m["marker_map_errors_mm"] = {str(n): float(e) for n, e in zip(truth["marker_names"], err)}
-    write_json(details_path, {"method": source, **m})
     keys = FRAGMENT_KEYS + ("marker_map_error_mm", "marker_map_p95_error_mm", "marker_map_skin_error_mm",
                             "marker_map_placed_error_mm")
+    if solve_npz is not None:
+        with np.load(solve_npz, allow_pickle=False) as z:
+            unrefined = z["unrefined_weights"].astype(np.float64) if "unrefined_weights" in z.files else None
+            solve_names = [str(n) for n in z["shape_names"]] if "shape_names" in z.files else list(names)
+        if unrefined is not None:
+            u = retarget_metrics(unrefined, solve_names, truth["weights"].astype(np.float64), tn,
+                                 sub.deltas[:, sub.marker_vertices], solve_npz, truth_npz)
+            m["unrefined_mean_correlation"], m["unrefined_weight_mae"] = u["mean_correlation"], u["weight_mae"]
+            keys += ("unrefined_mean_correlation", "unrefined_weight_mae")
+    write_json(details_path, {"method": source, **m})
     write_metrics_fragment(metrics_path, "retarget", {f"{source}_weights": {k: m[k] for k in keys}})
     return m
 

@@ -15,6 +15,9 @@ performance's markers are read through that rig:
    term ``lambda_t ||w_f - w_(f-1)||^2`` and L1 sparsity ``lambda_l1 1^T w``. Block-coordinate descent over
    all frames at once: batched weighted Kabsch for the rigid motion, then the even and the odd frames' exact box
    QPs (:func:`rigbuild.geometry.box_qp.solve_box_qp_batched`; each half's temporal neighbours are fixed).
+   Optionally (:func:`solve_actor_weights_refined`, beyond the issue's solve) the EM's shape step in marker space
+   (:func:`refine_rig_at_markers`) alternates with it: the rig at the markers is re-estimated from the take's own
+   frames, held to the personalized rig by a prior.
 3. **Semantic transfer** (:func:`semantic_transfer`): a character whose shape names match the actor rig's takes
    the actor weights by name (the baseline of the ``*_actor_rig`` paths).
 
@@ -185,7 +188,7 @@ def _rigid_blocks(y: np.ndarray, v: np.ndarray, base: np.ndarray,
 def solve_actor_weights(b0: np.ndarray, D: np.ndarray, markers: np.ndarray, lambda_t: float = 0.0,
                         lambda_l1: float = 0.0, lambda_s: float = 0.0, bounds: Sequence[float] = (0.0, 1.0),
                         sweeps: int = 60, tol: float = 1e-4, observable_mm: float = 0.05,
-                        contiguous: bool = True) -> ActorWeights:
+                        contiguous: bool = True, initial: ActorWeights | None = None) -> ActorWeights:
     """Rigid head motion and bounded weights of every frame of a take from a rig sampled at its markers.
 
     b0 (M, 3) mm, D (K, M, 3) mm (:func:`sample_rig_at_markers`); markers (F, M, 3) mm in any rigid frame
@@ -197,8 +200,10 @@ def solve_actor_weights(b0: np.ndarray, D: np.ndarray, markers: np.ndarray, lamb
     Each sweep is a joint Gauss-Newton step of every frame, as the personalization's frame fit: the rotation
     linearized about the current one (``R = R0 exp([omega])``, ``t = t0 + R0 tau``), the six rigid unknowns
     eliminated (Schur complement), and the weights from exact box QPs, the even frames then the odd ones given
-    their temporal neighbours. The poses start from a batched Kabsch fit of the neutral. A frame with fewer than
-    3 markers keeps the nearest posed frame's pose; one with none takes its weights from the temporal term.
+    their temporal neighbours. The poses start from a batched Kabsch fit of the neutral (``initial``: from that
+    solve's weights and poses instead, e.g. a solve of the same take with a slightly different rig). A frame with
+    fewer than 3 markers keeps the nearest posed frame's pose; one with none takes its weights from the temporal
+    term.
     """
     b0 = np.asarray(b0, dtype=np.float64)
     D = np.asarray(D, dtype=np.float64)
@@ -232,6 +237,9 @@ def solve_actor_weights(b0: np.ndarray, D: np.ndarray, markers: np.ndarray, lamb
     W = np.zeros((F, Ko))
     R, t = fit_rigid_motion_batched(np.broadcast_to(b0, (F, M, 3)), Pz, v)
     R, t = R[nearest], t[nearest]
+    if initial is not None:
+        W = np.clip(np.asarray(initial.weights, dtype=np.float64)[:, observable], lo, hi)
+        R, t = np.array(initial.rotations, dtype=np.float64), np.array(initial.translations, dtype=np.float64)
     halves = [np.arange(0, F, 2), np.arange(1, F, 2)] if lt > 0 else [np.arange(F)]
     eye3 = np.eye(3)
     converged_qp = True
@@ -276,6 +284,52 @@ def solve_actor_weights(b0: np.ndarray, D: np.ndarray, markers: np.ndarray, lamb
     weights = np.zeros((F, K))
     weights[:, observable] = W
     return ActorWeights(weights, R, t, residual, observable, done, bool(moved < tol and converged_qp))
+
+
+def refine_rig_at_markers(prior_b0: np.ndarray, prior_D: np.ndarray, markers: np.ndarray, solved: ActorWeights,
+                          prior: float) -> tuple[np.ndarray, np.ndarray]:
+    """The shape step of Ma et al. 2016's EM (section 3) in marker space: the rig at the markers re-estimated from
+    a take's frames given their solved weights and head poses, held to the personalized rig by a prior.
+
+    prior_b0 (M, 3), prior_D (K, M, 3) mm: the rig at the markers the refinement is held to (the personalized
+    rig's, :func:`sample_rig_at_markers`); markers (F, M, 3) mm (NaN: a gap); solved: the frames' weights and
+    poses. Each marker m on its own (closed form, the neutral as a shape of weight 1)::
+
+        min_(b0_m, D_m)  sum_f v_fm ||b0_m + D_m^T w_f - R_f^T (p_fm - t_f)||^2
+                         + prior (||b0_m - prior_b0_m||^2 + ||D_m - prior_D_m||^2)
+
+    ``prior`` counts as that many frames at full weight (dimensionless; 0: the take alone). Returns (b0 (M, 3),
+    D (K, M, 3)) mm."""
+    P = np.asarray(markers, dtype=np.float64)
+    vis = np.isfinite(P).all(2)
+    v = vis.astype(np.float64)
+    q = np.einsum("fji,fmj->fmi", solved.rotations, np.where(vis[..., None], P, 0.0) - solved.translations[:, None])
+    Wa = np.concatenate([np.asarray(solved.weights, dtype=np.float64), np.ones((P.shape[0], 1))], axis=1)
+    X0 = np.concatenate([prior_D, prior_b0[None]], axis=0).transpose(1, 0, 2)  # (M, K + 1, 3)
+    A = np.einsum("fm,fk,fl->mkl", v, Wa, Wa, optimize=True) + float(prior) * np.eye(Wa.shape[1])
+    B = np.einsum("fm,fk,fmc->mkc", v, Wa, q, optimize=True) + float(prior) * X0
+    ridge = 1e-9 * max(1.0, float(np.abs(A).max(initial=0.0)))
+    X = np.linalg.solve(A + ridge * np.eye(Wa.shape[1]), B)  # (M, K + 1, 3)
+    return X[:, -1], X[:, :-1].transpose(1, 0, 2)
+
+
+def solve_actor_weights_refined(b0: np.ndarray, D: np.ndarray, markers: np.ndarray, iterations: int, prior: float,
+                                **solve_kw) -> tuple[ActorWeights, ActorWeights, np.ndarray, np.ndarray]:
+    """:func:`solve_actor_weights`, then ``iterations`` rounds of (:func:`refine_rig_at_markers` held to ``b0``,
+    ``D``; the weights and poses solved again from the refined rig, warm-started). Online refinement of the
+    personalized rig on the take being solved: where the personalization got a shape wrong at the markers (the
+    tracked range of motion's lids and lips), the take's own frames correct it; the prior keeps each shape near
+    the personalized one, so the weights keep the personalized rig's meaning.
+
+    Returns (the final solve, the solve from the unrefined rig, refined b0 (M, 3), refined D (K, M, 3));
+    ``iterations`` 0 returns the plain solve twice and the rig unchanged."""
+    first = solve_actor_weights(b0, D, markers, **solve_kw)
+    sol, b, d = first, np.asarray(b0, dtype=np.float64), np.asarray(D, dtype=np.float64)
+    for _ in range(int(iterations)):
+        b, d = refine_rig_at_markers(np.asarray(b0, dtype=np.float64), np.asarray(D, dtype=np.float64), markers,
+                                     sol, prior)
+        sol = solve_actor_weights(b, d, markers, initial=sol, **solve_kw)
+    return sol, first, b, d
 
 
 # --------------------------------------------------------------------------------------- the marker map

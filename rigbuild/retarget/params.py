@@ -314,7 +314,11 @@ class ActorRigParams:
     map_frames : frames of the take spread evenly over it that place the markers on the rig; map_iterations :
         rounds of (solve those frames, move each marker to its closest point on the posed rig);
     observable_mm : a shape that moves no marker this much at weight 1 is held at 0;
-    max_surface_distance_mm : a marker whose placed point is farther from the rig's skin is reported (warning).
+    max_surface_distance_mm : a marker whose placed point is farther from the rig's skin is reported (warning);
+    refine_iterations : rounds of the EM's shape step in marker space after the solve (the rig at the markers
+        re-estimated from the take's frames, the weights solved again; 0: off, the plain solve;
+        :func:`rigbuild.retarget.actor_rig.solve_actor_weights_refined`); refine_prior : how many frames at full
+        weight the personalized rig at the markers counts for against the take (dimensionless).
     """
 
     lambda_t: float = 0.0
@@ -328,6 +332,8 @@ class ActorRigParams:
     map_iterations: int = 4
     observable_mm: float = 0.05
     max_surface_distance_mm: float = 8.0
+    refine_iterations: int = 0
+    refine_prior: float = 10.0
 
 
 #: where the methods without the personalized rig read the range of motion (``params.retarget.take_markers.rom``)
@@ -419,14 +425,18 @@ def check_actor_rig(p: ActorRigParams, where: str = f"{WHERE}.actor_rig") -> Act
     _interval(p.bounds, f"{where}.bounds", optional=False)
     if not p.bounds[0] < p.bounds[1]:
         raise InputError(f"'{where}.bounds' must have lo < hi, got {p.bounds!r}", path="config", fix="e.g. [0, 1]")
-    for name in ("lambda_t", "lambda_l1", "lambda_s", "tol", "observable_mm", "max_surface_distance_mm"):
+    for name in ("lambda_t", "lambda_l1", "lambda_s", "tol", "observable_mm", "max_surface_distance_mm",
+                 "refine_prior"):
         v = getattr(p, name)
-        if not isinstance(v, (int, float)) or v < 0:
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or v < 0:
             raise InputError(f"'{where}.{name}' must be a number >= 0, got {v!r}", path="config")
     for name in ("sweeps", "map_frames", "map_iterations"):
         v = getattr(p, name)
         if not isinstance(v, int) or v < 1:
             raise InputError(f"'{where}.{name}' must be an integer >= 1, got {v!r}", path="config")
+    if not isinstance(p.refine_iterations, int) or isinstance(p.refine_iterations, bool) or p.refine_iterations < 0:
+        raise InputError(f"'{where}.refine_iterations' must be an integer >= 0, got {p.refine_iterations!r}",
+                         path="config", fix="0 turns the refinement off")
     return p
 
 

@@ -394,9 +394,12 @@ def run_actor_rig(performance: Path, rig_path: Path, actor_rig: Mapping[str, Any
     marker set names the take's markers and starts the map); actor_rig : ``params.retarget.actor_rig``.
     Writes ``marker_map.json`` (marker -> face, barycentric, normal offset on the rig), the weight curves (CSV,
     JSON, the rig's shape order), ``solve.npz`` (weights (F, K), rotations (F, 3, 3), translations (F, 3) mm:
-    rig frame -> take frame, residual_mm (F,)) and the metrics fragment ``retarget.actor_rig_weights``."""
+    rig frame -> take frame, residual_mm (F,); with ``refine_iterations`` the solve from the unrefined rig as
+    unrefined_weights / unrefined_residual_mm and the rig at the markers it ended with, rig_neutral_at_markers
+    (M, 3), rig_deltas_at_markers (K, M, 3) mm) and the metrics fragment ``retarget.actor_rig_weights``."""
     from rigbuild.io.atomic import save_npz, write_json
-    from rigbuild.retarget.actor_rig import fit_marker_map, marker_map_for_take, sample_rig_at_markers, solve_actor_weights
+    from rigbuild.retarget.actor_rig import (fit_marker_map, marker_map_for_take, sample_rig_at_markers,
+                                             solve_actor_weights_refined)
     from rigbuild.retarget.common import lowpass_markers
     from rigbuild.retarget.params import actor_rig_from_config
 
@@ -413,8 +416,9 @@ def run_actor_rig(performance: Path, rig_path: Path, actor_rig: Mapping[str, Any
                           observable_mm=p.observable_mm)
     t1 = time.perf_counter()
     b0, D = sample_rig_at_markers(rig.neutral, rig.deltas, rig.faces, mmap)
-    sol = solve_actor_weights(b0, D, P, lambda_t=p.lambda_t, lambda_l1=p.lambda_l1, lambda_s=p.lambda_s,
-                              bounds=p.bounds, sweeps=p.sweeps, tol=p.tol, observable_mm=p.observable_mm)
+    sol, first, b0_refined, D_refined = solve_actor_weights_refined(
+        b0, D, P, p.refine_iterations, p.refine_prior, lambda_t=p.lambda_t, lambda_l1=p.lambda_l1,
+        lambda_s=p.lambda_s, bounds=p.bounds, sweeps=p.sweeps, tol=p.tol, observable_mm=p.observable_mm)
     t2 = time.perf_counter()
     far = [n for n, o in zip(mmap.names, mmap.normal_offset) if abs(o) > p.max_surface_distance_mm]
     log = logging.getLogger("rigbuild.retarget.actor_rig")
@@ -436,11 +440,15 @@ def run_actor_rig(performance: Path, rig_path: Path, actor_rig: Mapping[str, Any
     write_weight_curves_json(weights_json, sol.weights, rig.shape_names, take.fps, meta=meta)
     save_npz(solve, weights=sol.weights, rotations=sol.rotations, translations=sol.translations,
              residual_mm=sol.residual_mm, observable=sol.observable, shape_names=np.asarray(rig.shape_names),
-             marker_names=np.asarray(mmap.names), fps=np.float64(take.fps))
+             marker_names=np.asarray(mmap.names), fps=np.float64(take.fps), unrefined_weights=first.weights,
+             unrefined_residual_mm=first.residual_mm, rig_neutral_at_markers=b0_refined,
+             rig_deltas_at_markers=D_refined)
     F = sol.weights.shape[0]
     values = {"n_frames": F, "n_markers": len(mmap.names), "map_s": t1 - t0, "solve_s": t2 - t1,
-              "frames_per_s": F / max(t2 - t1, 1e-9), "sweeps": sol.sweeps, "converged": sol.converged,
+              "frames_per_s": F / max(t2 - t1, 1e-9), "sweeps": sol.sweeps,
+              "converged": sol.converged, "refine_iterations": p.refine_iterations,
               "marker_residual_mm": float(np.nanmean(sol.residual_mm)),
+              "unrefined_marker_residual_mm": float(np.nanmean(first.residual_mm)),
               "map_surface_rms_mm": mmap.surface_rms_mm, "markers_off_skin": len(far),
               "markers_unplaced": len(unplaced),
               "weight_min": float(sol.weights.min()), "weight_max": float(sol.weights.max()),
