@@ -5,8 +5,8 @@
 # results/{session}/track/{sequence}/markers.npz and vertices.npz; rule take_markers (below) reads every sequence at
 # the take's own markers (params.retarget.take_markers). Params: config["params"]["retarget"]["ribera"]
 # (rigbuild/retarget/params.py RiberaParams). Method ribera_fit_actor_rig (RIBERA_ACTOR_RIG_METHOD) also reads the
-# personalized rig (personalize.smk) and the take's marker map on it (rule actor_rig_weights,
-# retarget_actor_rig.smk); the other methods' jobs do not depend on them.
+# personalized rig (personalize.smk), the take's marker map on it and the rig at the markers refined on the take
+# (rule actor_rig_weights, retarget_actor_rig.smk); the other methods' jobs do not depend on them.
 from rigbuild.retarget.methods import PIPELINE_METHODS, RIBERA_ACTOR_RIG_METHOD, RIBERA_METHODS
 from rigbuild.retarget.methods import wildcard as _method_wildcard
 
@@ -40,11 +40,13 @@ def _retarget_actor_rig(wc):
     return [f"results/{wc.session}/personalize/rig.npz"] if wc.method == RIBERA_ACTOR_RIG_METHOD else []
 
 
-def _retarget_marker_map(wc):
-    """Method ribera_fit_actor_rig: the take's markers placed on the personalized rig ([] for the others)."""
-    if wc.method != RIBERA_ACTOR_RIG_METHOD:
+def actor_rig_take_file(wc, method, name):
+    """A file of the take's actor-rig job (rule actor_rig_weights): ``marker_map.json`` (the take's markers
+    placed on the personalized rig) or ``solve.npz`` (its rig at the markers, refined on the take), for the
+    actor-rig ``method`` of a rule; [] for the rule's other methods."""
+    if wc.method != method:
         return []
-    return [f"results/{wc.session}/actor_rig/{wc.performance}/marker_map.json"]
+    return [f"results/{wc.session}/actor_rig/{wc.performance}/{name}"]
 
 
 def retarget_metric_files(session):
@@ -95,7 +97,8 @@ rule retarget_ribera:
         training=_retarget_rom_markers,
         rig="results/{session}/characters/{character}.npz",
         actor_rig=_retarget_actor_rig,
-        marker_map=_retarget_marker_map,
+        marker_map=lambda wc: actor_rig_take_file(wc, RIBERA_ACTOR_RIG_METHOD, "marker_map.json"),
+        actor_solve=lambda wc: actor_rig_take_file(wc, RIBERA_ACTOR_RIG_METHOD, "solve.npz"),
     output:
         weights="results/{session}/retarget/{method}/{performance}/{character}/weights.csv",
         weights_json="results/{session}/retarget/{method}/{performance}/{character}/weights.json",

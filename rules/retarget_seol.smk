@@ -1,11 +1,12 @@
 # Spacetime expression cloning (Seol et al. 2012): one job per (session, performance, character, method), method in
 # SEOL_METHODS (rigbuild/retarget/methods.py). Needs from common.smk: performance_file, CHARACTERS; from
-# retarget.smk: _retarget_rom_markers / _retarget_neutral_frames (the tracked ROM markers and their neutral rows);
+# retarget.smk: _retarget_rom_markers / _retarget_neutral_frames (the tracked ROM markers and their neutral rows),
+# actor_rig_take_file;
 # characters.smk builds results/{session}/characters/{character}.npz. Params: config["params"]["retarget"]["seol"]
 # (rigbuild/retarget/params.py SeolParams). Method seol_actor_rig (SEOL_ACTOR_RIG_METHOD) also reads the
-# personalized rig (personalize.smk) and the take's marker map on it (rule actor_rig_weights,
-# retarget_actor_rig.smk): its source neutral and expression space (rigbuild/retarget/seol/actor_space.py); the seol
-# jobs do not depend on them.
+# personalized rig (personalize.smk), the take's marker map on it and the rig at the markers refined on the take
+# (rule actor_rig_weights, retarget_actor_rig.smk): its source neutral and expression space
+# (rigbuild/retarget/seol/actor_space.py); the seol jobs do not depend on them.
 from rigbuild.retarget.methods import SEOL_ACTOR_RIG_METHOD, SEOL_METHODS
 
 
@@ -13,13 +14,6 @@ def _seol_actor_rig(wc):
     """Method seol_actor_rig: the personalized rig whose shapes at the markers are the actor's expression space
     ([] for seol)."""
     return [f"results/{wc.session}/personalize/rig.npz"] if wc.method == SEOL_ACTOR_RIG_METHOD else []
-
-
-def _seol_marker_map(wc):
-    """Method seol_actor_rig: the take's markers placed on the personalized rig ([] for seol)."""
-    if wc.method != SEOL_ACTOR_RIG_METHOD:
-        return []
-    return [f"results/{wc.session}/actor_rig/{wc.performance}/marker_map.json"]
 
 
 rule retarget_seol:
@@ -30,7 +24,8 @@ rule retarget_seol:
         rig="results/{session}/characters/{character}.npz",
         neutral=_retarget_rom_markers,  # tracked ROM markers: the actor's neutral (mean of the neutral frames)
         actor_rig=_seol_actor_rig,
-        marker_map=_seol_marker_map,
+        marker_map=lambda wc: actor_rig_take_file(wc, SEOL_ACTOR_RIG_METHOD, "marker_map.json"),
+        actor_solve=lambda wc: actor_rig_take_file(wc, SEOL_ACTOR_RIG_METHOD, "solve.npz"),
     output:
         weights="results/{session}/retarget/{method}/{performance}/{character}/weights.csv",
         weights_json="results/{session}/retarget/{method}/{performance}/{character}/weights.json",

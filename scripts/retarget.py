@@ -1,8 +1,8 @@
 """Snakemake entry point of rule ``retarget_ribera``: one performance onto one character with one Ribera method.
 
 input: performance (.c3d/.npz markers), training (tracked ROM marker .npz files), rig (character .npz);
-method ribera_fit_actor_rig also actor_rig (personalized rig.npz) and marker_map (the take's marker_map.json),
-empty for the other methods.
+method ribera_fit_actor_rig also actor_rig (personalized rig.npz), marker_map (the take's marker_map.json) and
+actor_solve (its solve.npz), empty for the other methods.
 output: weights (.csv), weights_json, gltf, preview (.png), metrics (retarget_metrics.json fragment).
 params: ribera (config params.retarget.ribera), method, character, performance, neutral_frames.
 """
@@ -17,7 +17,7 @@ def main(smk) -> None:
                str(prm.performance), prm.get("ribera", None), prm.get("neutral_frames", None),
                weights=o.weights, weights_json=o.weights_json, gltf=o.gltf, preview=o.preview, metrics=o.metrics,
                workers=int(smk.threads), actor_rig=smk.input.get("actor_rig", None),
-               marker_map=smk.input.get("marker_map", None))
+               marker_map=smk.input.get("marker_map", None), actor_solve=smk.input.get("actor_solve", None))
 
 
 run_logged(snakemake, main)  # noqa: F821

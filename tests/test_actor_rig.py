@@ -393,3 +393,31 @@ def test_eval_of_the_take_markers_is_exact_on_a_known_placement(tmp_path, proced
     expected = np.linalg.norm(start.points(rig.neutral, rig.faces) - rest, axis=1).mean()
     assert m["marker_set_skin_error_mm"] == pytest.approx(expected, rel=1e-4)
     assert json.loads((tmp_path / "metrics.json").read_text())["retarget"]["take_markers"] == m
+
+
+def test_rig_at_markers_takes_the_refined_rig_from_the_actor_rig_solve(tmp_path):
+    """Ribera's and Seol's actor-rig methods read the rig at the markers from the take's actor-rig solve when it
+    holds a refined one (rule actor_rig_weights with refine_iterations), the personalized rig's otherwise; a solve
+    of other markers is refused by name."""
+    import json
+
+    from rigbuild.io.rigs import load_rig, write_rig_npz
+    from rigbuild.retarget.stage import load_rig_at_markers
+
+    rig = load_rig("procedural")
+    write_rig_npz(tmp_path / "rig.npz", rig)
+    mmap = vertex_marker_map(rig.marker_names, rig.marker_vertices, rig.faces)
+    (tmp_path / "marker_map.json").write_text(json.dumps({"markers": mmap.to_json()}))
+    b0, D = sample_rig_at_markers(rig.neutral, rig.deltas, rig.faces, mmap)
+    np.savez(tmp_path / "plain.npz", weights=np.zeros((2, len(D))), marker_names=np.asarray(mmap.names))
+    np.savez(tmp_path / "refined.npz", marker_names=np.asarray(mmap.names), rig_neutral_at_markers=b0 + 1.0,
+             rig_deltas_at_markers=2.0 * D)
+    np.savez(tmp_path / "other.npz", marker_names=np.asarray(mmap.names[::-1]), rig_neutral_at_markers=b0,
+             rig_deltas_at_markers=D)
+    for solve, (want_b0, want_D) in ((None, (b0, D)), ("plain.npz", (b0, D)), ("refined.npz", (b0 + 1.0, 2.0 * D))):
+        got = load_rig_at_markers(tmp_path / "rig.npz", tmp_path / "marker_map.json",
+                                  None if solve is None else tmp_path / solve)
+        np.testing.assert_allclose(got.neutral, want_b0, atol=1e-9)
+        np.testing.assert_allclose(got.deltas, want_D, atol=1e-9)
+    with pytest.raises(InputError, match="other markers or shapes"):
+        load_rig_at_markers(tmp_path / "rig.npz", tmp_path / "marker_map.json", tmp_path / "other.npz")

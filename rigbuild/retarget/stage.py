@@ -177,7 +177,7 @@ def tracked_takes_on_map(files: Sequence[Path], rig_path: Path, marker_map_path:
 
 
 def actor_rig_for_method(method: str, actor_rig_method: str, rule: str, actor_rig: str | None,
-                         marker_map: str | None):
+                         marker_map: str | None, actor_solve: str | None = None):
     """The personalized rig at the take's markers (:func:`load_rig_at_markers`) when ``method`` is the rule's
     actor-rig method (InputError naming the rule when its inputs are missing); None for the other methods."""
     if method != actor_rig_method:
@@ -185,12 +185,34 @@ def actor_rig_for_method(method: str, actor_rig_method: str, rule: str, actor_ri
     if not actor_rig or not marker_map:
         raise InputError(f"method '{method}' needs the personalized rig and the take's marker map", path="rules",
                          fix=f"give rule {rule} the inputs actor_rig and marker_map for this method")
-    return load_rig_at_markers(actor_rig, marker_map)
+    return load_rig_at_markers(actor_rig, marker_map, actor_solve)
 
 
-def load_rig_at_markers(rig_path: Path, marker_map_path: Path):
+def refined_rig_at_markers(solve_path: Path, b0: np.ndarray, D: np.ndarray,
+                           marker_names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The rig at the markers the take's actor-rig solve ended with (``solve.npz`` of rule ``actor_rig_weights``:
+    ``rig_neutral_at_markers`` (M, 3), ``rig_deltas_at_markers`` (K, M, 3) mm, refined on the take with
+    ``params.retarget.actor_rig.refine_iterations``), in place of the personalized rig's ``b0``, ``D`` at the same
+    markers; ``b0``, ``D`` unchanged when the solve holds none (a solve.npz written before the refinement)."""
+    try:
+        with np.load(solve_path, allow_pickle=False) as z:
+            if "rig_neutral_at_markers" not in z.files:
+                return b0, D
+            b1, D1 = z["rig_neutral_at_markers"].astype(np.float64), z["rig_deltas_at_markers"].astype(np.float64)
+            names = [str(n) for n in z["marker_names"]]
+    except (OSError, ValueError, KeyError) as e:
+        raise InputError(f"cannot read the actor-rig solve ({e})", path=solve_path,
+                         fix="re-run rule actor_rig_weights for this performance") from None
+    if names != list(marker_names) or b1.shape != b0.shape or D1.shape != D.shape:
+        raise InputError("the actor-rig solve and the marker map name other markers or shapes", path=solve_path,
+                         fix="re-run rule actor_rig_weights for this performance (both come from its one job)")
+    return b1, D1
+
+
+def load_rig_at_markers(rig_path: Path, marker_map_path: Path, solve_path: Path | None = None):
     """The personalized rig (``rig.npz``, mm) sampled at a take's markers placed on it (``marker_map.json`` of
-    rule ``actor_rig_weights``): :class:`~rigbuild.retarget.ribera.RigAtMarkers` in the rig's frame."""
+    rule ``actor_rig_weights``): :class:`~rigbuild.retarget.ribera.RigAtMarkers` in the rig's frame; with the
+    same job's ``solve.npz``, the rig at the markers refined on the take (:func:`refined_rig_at_markers`)."""
     import json
 
     from rigbuild.io.rigs import load_rig
@@ -212,6 +234,8 @@ def load_rig_at_markers(rig_path: Path, marker_map_path: Path):
         raise InputError(f"the marker map names triangles outside the personalized rig's {n_faces}",
                          path=marker_map_path, fix=f"place the markers on {rig_path} (rule actor_rig_weights)")
     b0, D = sample_rig_at_markers(rig.neutral, rig.deltas, rig.faces, mmap)
+    if solve_path is not None:
+        b0, D = refined_rig_at_markers(solve_path, b0, D, mmap.names)
     return RigAtMarkers(b0, D, list(mmap.names), [str(n) for n in rig.shape_names])
 
 
@@ -219,7 +243,8 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
                performance_name: str, ribera: Mapping[str, Any] | None, neutral_frames: Sequence[int] | None, *,
                weights: Path, weights_json: Path, gltf: Path, preview: Path, metrics: Path,
                workers: int = 1, actor_rig: Path | Sequence[Path] | None = None,
-               marker_map: Path | Sequence[Path] | None = None) -> dict[str, Any]:
+               marker_map: Path | Sequence[Path] | None = None,
+               actor_solve: Path | Sequence[Path] | None = None) -> dict[str, Any]:
     """Rule ``retarget_ribera``: one performance onto one character with one method of
     :data:`~rigbuild.retarget.methods.RIBERA_METHODS`.
 
@@ -229,7 +254,8 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
     whatever ``ribera`` says (:meth:`~rigbuild.retarget.params.RiberaParams.for_method`; the weight files'
     ``params`` are the ones it ran with); actor_rig, marker_map : method ``ribera_fit_actor_rig`` only, the
     personalized ``rig.npz`` and the take's ``marker_map.json`` on it (its guesses g_k,
-    :func:`load_rig_at_markers`), each a path or a list of at most one (:func:`one_input`); with them,
+    :func:`load_rig_at_markers`; actor_solve: the same job's ``solve.npz``, whose rig at the markers refined on the
+    take replaces them), each a path or a list of at most one (:func:`one_input`); with them,
     ``training`` may be the tracked ``vertices.npz`` files, sampled at the marker map
     (:func:`tracked_takes_on_map`: the range of motion at the performance's own marker points). Writes the outputs
     named by the keywords; returns the metrics."""
@@ -241,7 +267,8 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
         raise InputError(f"unknown method '{method}'", path="config", fix=f"use one of {RIBERA_METHODS}")
     p = p.for_method(method)  # ``ribera``: the paper's constants whatever the config says
     actor_rig, marker_map = one_input(actor_rig), one_input(marker_map)
-    rig_at_markers = actor_rig_for_method(method, RIBERA_ACTOR_RIG_METHOD, "retarget_ribera", actor_rig, marker_map)
+    rig_at_markers = actor_rig_for_method(method, RIBERA_ACTOR_RIG_METHOD, "retarget_ribera", actor_rig, marker_map,
+                                          one_input(actor_solve))
     take = read_markers(performance)
     files = list(training)
     if rig_at_markers is not None and all(str(f).endswith("vertices.npz") for f in files):
@@ -313,7 +340,8 @@ def run_seol(performance: Path, rig_path: Path, neutral: Sequence[Path] | None, 
              character: str, performance_name: str, seol: Mapping[str, Any] | None, *, weights: Path,
              weights_json: Path, gltf: Path, plot: Path, metrics: Path, system: Path, method: str = "seol",
              actor_rig: Path | Sequence[Path] | None = None,
-             marker_map: Path | Sequence[Path] | None = None) -> dict[str, Any]:
+             marker_map: Path | Sequence[Path] | None = None,
+             actor_solve: Path | Sequence[Path] | None = None) -> dict[str, Any]:
     """Rule ``retarget_seol``: spacetime expression cloning (Seol et al. 2012) of one performance onto one
     character, with the sec. 7 per-frame baselines, the fig. 11 velocity-error plot and ``system.npz`` for
     ``rigbuild edit``.
@@ -322,7 +350,8 @@ def run_seol(performance: Path, rig_path: Path, neutral: Sequence[Path] | None, 
     frame); seol : ``params.retarget.seol``; method : one of :data:`~rigbuild.retarget.methods.SEOL_METHODS`;
     actor_rig, marker_map : method ``seol_actor_rig`` only, the personalized ``rig.npz`` and the take's
     ``marker_map.json`` on it (:func:`load_rig_at_markers`; the source neutral and expression space,
-    :mod:`rigbuild.retarget.seol.actor_space`), each a path or a list of at most one (:func:`one_input`).
+    :mod:`rigbuild.retarget.seol.actor_space`; actor_solve: the same job's ``solve.npz``, whose rig at the markers
+    refined on the take replaces them), each a path or a list of at most one (:func:`one_input`).
     Writes the outputs named by the keywords; returns the metrics."""
     from rigbuild.retarget.common import reorder_markers
     from rigbuild.retarget.seol import retarget_seol
@@ -334,7 +363,8 @@ def run_seol(performance: Path, rig_path: Path, neutral: Sequence[Path] | None, 
     if method not in SEOL_METHODS:
         raise InputError(f"unknown method '{method}'", path="rules", fix=f"use one of {SEOL_METHODS}")
     actor_rig, marker_map = one_input(actor_rig), one_input(marker_map)
-    rig_at_markers = actor_rig_for_method(method, SEOL_ACTOR_RIG_METHOD, "retarget_seol", actor_rig, marker_map)
+    rig_at_markers = actor_rig_for_method(method, SEOL_ACTOR_RIG_METHOD, "retarget_seol", actor_rig, marker_map,
+                                          one_input(actor_solve))
     t0 = time.perf_counter()
     take = read_markers(performance)
     rig = read_rig_npz(rig_path)
