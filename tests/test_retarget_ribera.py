@@ -358,6 +358,38 @@ def _gappy_model(seed=5, K=12, M=30, F=120):
     return model, markers
 
 
+
+def test_actor_blendshapes_refined_on_the_take_correct_a_wrong_shape():
+    """Beyond the paper (take_refine_iterations): a model whose blendshape 3 is wrong at the markers (noise of 60 %
+    of its RMS) retargets the take worse than the true model; refining the actor blendshapes on the take brings
+    that shape and the weights back towards the truth (measured: weight MAE 0.0135 -> 0.0107, the shape's error
+    14.2 -> 5.4 mm); 0 rounds returns the model and weights as they are, and the paper's method never refines."""
+    from dataclasses import replace
+
+    from rigbuild.retarget.params import RiberaParams
+    from rigbuild.retarget.run import refine_model_on_take
+
+    rng = np.random.default_rng(11)
+    K, M, F = 8, 30, 400
+    a0 = rng.normal(size=(M, 3)) * np.array([60.0, 80.0, 40.0])
+    dp = rng.normal(size=(K, M, 3)) * 3.0
+    W = rng.uniform(0, 1, size=(F, K)) * (rng.uniform(size=(F, K)) > 0.5)
+    markers = a0[None] + np.einsum("fk,kmc->fmc", W, dp) + rng.normal(size=(F, M, 3)) * 0.1
+    wrong = dp.copy()
+    wrong[3] = dp[3] + 0.6 * np.sqrt(np.mean(dp[3] ** 2)) * rng.normal(size=dp[3].shape)
+    prm = rb.RetargetParams(mu=0.0, lambda_cm=0.0, bounds=(0.0, 1.0), take_refine_iterations=10)
+    model = rb.RiberaModel(a0, wrong, np.zeros((K, K)), np.ones(M), [f"s{k}" for k in range(K)], prm)
+    w0 = model.retarget(markers)
+    same, w_same = refine_model_on_take(replace(model, params=replace(prm, take_refine_iterations=0)), markers, w0)
+    assert np.array_equal(w_same, w0) and np.array_equal(same.dp, wrong)
+    refined, w1 = refine_model_on_take(model, markers, w0)
+    err0, err1 = np.abs(w0 - W).mean(), np.abs(w1 - W).mean()
+    assert err1 < 0.8 * err0, (err0, err1)
+    assert np.linalg.norm(refined.dp[3] - dp[3]) < 0.5 * np.linalg.norm(wrong[3] - dp[3])
+    paper = RiberaParams(take_refine_iterations=10)
+    assert paper.retarget_params("ribera").take_refine_iterations == 0
+    assert paper.retarget_params("ribera_fit").take_refine_iterations == 10
+
 def test_batch_equals_one_frame_at_a_time_with_gaps():
     """Whole-sequence retargeting (visibility patterns grouped, systems cached, warm-started rigid re-fit)
     gives the same weights as one frame at a time, and the same as a cold-started solve."""

@@ -37,6 +37,7 @@ from rigbuild.geometry.box_qp import solve_box_qp_batched
 from rigbuild.geometry.mesh import closest_surface_points, points_on_surface
 from rigbuild.geometry.rigid import fit_rigid_motion_batched
 from rigbuild.progress import progress
+from rigbuild.retarget.common import refit_rig_at_markers
 
 log = logging.getLogger(__name__)
 
@@ -288,29 +289,13 @@ def solve_actor_weights(b0: np.ndarray, D: np.ndarray, markers: np.ndarray, lamb
 
 def refine_rig_at_markers(prior_b0: np.ndarray, prior_D: np.ndarray, markers: np.ndarray, solved: ActorWeights,
                           prior: float) -> tuple[np.ndarray, np.ndarray]:
-    """The shape step of Ma et al. 2016's EM (section 3) in marker space: the rig at the markers re-estimated from
-    a take's frames given their solved weights and head poses, held to the personalized rig by a prior.
-
-    prior_b0 (M, 3), prior_D (K, M, 3) mm: the rig at the markers the refinement is held to (the personalized
-    rig's, :func:`sample_rig_at_markers`); markers (F, M, 3) mm (NaN: a gap); solved: the frames' weights and
-    poses. Each marker m on its own (closed form, the neutral as a shape of weight 1)::
-
-        min_(b0_m, D_m)  sum_f v_fm ||b0_m + D_m^T w_f - R_f^T (p_fm - t_f)||^2
-                         + prior (||b0_m - prior_b0_m||^2 + ||D_m - prior_D_m||^2)
-
-    ``prior`` counts as that many frames at full weight (dimensionless; 0: the take alone). Returns (b0 (M, 3),
-    D (K, M, 3)) mm."""
+    """The EM's shape step on a take (:func:`rigbuild.retarget.common.refit_rig_at_markers`): the rig at the
+    markers re-estimated from the take's markers (F, M, 3) mm (NaN: a gap), brought into the rig's frame by the
+    solved head poses (``q = R_f^T (p - t_f)``), and the solved weights, held to ``prior_b0`` (M, 3), ``prior_D``
+    (K, M, 3) mm (the personalized rig's, :func:`sample_rig_at_markers`) by ``prior`` frames. Returns (b0, D) mm."""
     P = np.asarray(markers, dtype=np.float64)
-    vis = np.isfinite(P).all(2)
-    v = vis.astype(np.float64)
-    q = np.einsum("fji,fmj->fmi", solved.rotations, np.where(vis[..., None], P, 0.0) - solved.translations[:, None])
-    Wa = np.concatenate([np.asarray(solved.weights, dtype=np.float64), np.ones((P.shape[0], 1))], axis=1)
-    X0 = np.concatenate([prior_D, prior_b0[None]], axis=0).transpose(1, 0, 2)  # (M, K + 1, 3)
-    A = np.einsum("fm,fk,fl->mkl", v, Wa, Wa, optimize=True) + float(prior) * np.eye(Wa.shape[1])
-    B = np.einsum("fm,fk,fmc->mkc", v, Wa, q, optimize=True) + float(prior) * X0
-    ridge = 1e-9 * max(1.0, float(np.abs(A).max(initial=0.0)))
-    X = np.linalg.solve(A + ridge * np.eye(Wa.shape[1]), B)  # (M, K + 1, 3)
-    return X[:, -1], X[:, :-1].transpose(1, 0, 2)
+    q = np.einsum("fji,fmj->fmi", solved.rotations, P - solved.translations[:, None])  # NaN gaps stay NaN
+    return refit_rig_at_markers(prior_b0, prior_D, q, solved.weights, prior)
 
 
 def solve_actor_weights_refined(b0: np.ndarray, D: np.ndarray, markers: np.ndarray, iterations: int, prior: float,

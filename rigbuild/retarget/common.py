@@ -280,6 +280,33 @@ def stabilize(
     return stable, R, t
 
 
+def refit_rig_at_markers(prior_b0: np.ndarray, prior_D: np.ndarray, markers_in_rig_frame: np.ndarray,
+                         weights: np.ndarray, prior: float) -> tuple[np.ndarray, np.ndarray]:
+    """The shape step of Ma et al. 2016's EM (section 3) in marker space: a rig at the markers re-estimated from
+    a take's frames and their solved weights, held to a prior rig.
+
+    prior_b0 (M, 3), prior_D (K, M, 3) mm: the rig the estimate is held to; markers_in_rig_frame (F, M, 3) mm: the
+    take with its head motion removed (NaN: a gap); weights (F, K). Each marker m on its own (closed form, the
+    neutral as a shape of weight 1)::
+
+        min_(b0_m, D_m)  sum_f v_fm ||b0_m + D_m^T w_f - q_fm||^2 + prior (||b0_m - prior_b0_m||^2 + ||D_m - prior_D_m||^2)
+
+    ``prior`` counts as that many frames at full weight (dimensionless; 0: the take alone). Returns (b0 (M, 3),
+    D (K, M, 3)) mm."""
+    q = np.asarray(markers_in_rig_frame, dtype=np.float64)
+    vis = np.isfinite(q).all(2)
+    v = vis.astype(np.float64)
+    q = np.where(vis[..., None], q, 0.0)
+    Wa = np.concatenate([np.asarray(weights, dtype=np.float64), np.ones((q.shape[0], 1))], axis=1)
+    X0 = np.concatenate([np.asarray(prior_D, dtype=np.float64), np.asarray(prior_b0, dtype=np.float64)[None]],
+                        axis=0).transpose(1, 0, 2)  # (M, K + 1, 3)
+    A = np.einsum("fm,fk,fl->mkl", v, Wa, Wa, optimize=True) + float(prior) * np.eye(Wa.shape[1])
+    B = np.einsum("fm,fk,fmc->mkc", v, Wa, q, optimize=True) + float(prior) * X0
+    ridge = 1e-9 * max(1.0, float(np.abs(A).max(initial=0.0)))
+    X = np.linalg.solve(A + ridge * np.eye(Wa.shape[1]), B)  # (M, K + 1, 3)
+    return X[:, -1], X[:, :-1].transpose(1, 0, 2)
+
+
 def average_neutral(frames: np.ndarray, rounds: int = 2) -> np.ndarray:
     """The actor's neutral (M, 3) mm as the mean of several neutral frames (N, M, 3) (NaN gaps).
 

@@ -110,6 +110,10 @@ class RetargetParams:
         complement, see :class:`rigbuild.retarget.ribera.RiberaRetargeter`); ``"fixed"``: the stabilized
         frame is taken as is. A rigid fit to the neutral alone absorbs part of every expression (jawOpen
         reads partly as a head tilt).
+    take_refine_iterations, take_refine_prior : beyond the paper, rounds of the EM's shape step on the whole take
+        after its solve (:func:`rigbuild.retarget.common.refit_rig_at_markers`: the actor blendshapes at the
+        markers re-estimated from the take's stabilized frames, held to E_Align's by a prior worth
+        ``take_refine_prior`` frames at full weight; the take solved again); 0: off.
     """
 
     mu: float = PAPER_MU
@@ -128,6 +132,8 @@ class RetargetParams:
     still_gate: bool = False
     still_ratio: float = 0.25
     coherence_frames: float = 4.0
+    take_refine_iterations: int = 0
+    take_refine_prior: float = 10.0
 
     @property
     def lambda_mm(self) -> float:
@@ -162,6 +168,8 @@ class RiberaParams:
     sparsity, sparsity_lambda_cm, antagonists, antagonist_lambda_cm, still_gate, still_ratio, coherence_frames :
     the plausibility options of :class:`RetargetParams` (off by default; :data:`PLAUSIBLE` switches on the
     ones measured to help on real takes).
+    take_refine_iterations, take_refine_prior : :class:`RetargetParams` (the actor blendshapes refined on the take;
+    0 rounds by default).
     """
 
     alpha: float = TransferParams.alpha
@@ -187,6 +195,8 @@ class RiberaParams:
     still_gate: bool = RetargetParams.still_gate
     still_ratio: float = RetargetParams.still_ratio
     coherence_frames: float = RetargetParams.coherence_frames
+    take_refine_iterations: int = RetargetParams.take_refine_iterations
+    take_refine_prior: float = RetargetParams.take_refine_prior
 
     def for_method(self, method: str) -> "RiberaParams":
         """The parameters ``method`` runs with: these, except for :data:`PAPER_METHOD` (``ribera``), which
@@ -194,7 +204,7 @@ class RiberaParams:
         eq. 13 (``ceg_reference: character``), the RBF guesses of sec. 4.4 (``guess: rbf``), mu 0.3 and
         lambda 0.6 for cm (sec. 5), no weight bounds (eq. 16 has none; sec. 3 argues that bounding the weights
         to [0, 1] does not make expressions valid), E_Fit on the stabilized frame (``rigid: fixed``) and no
-        marker low-pass. The job's own settings (``allow_empty_frames``, ``preview_frames``, ``primary``) and
+        marker low-pass, no refinement of the actor blendshapes on the take. The job's own settings (``allow_empty_frames``, ``preview_frames``, ``primary``) and
         the other variants' fields are kept."""
         if method != PAPER_METHOD:
             return self
@@ -202,7 +212,8 @@ class RiberaParams:
 
         return replace(self, alpha=PAPER_ALPHA, beta=PAPER_BETA, r=PAPER_R, ceg_reference="character",
                        guess="rbf", mu=PAPER_MU, lambda_cm=PAPER_LAMBDA_CM, bounds=None, rigid="fixed",
-                       marker_lowpass_hz=None, sparsity="l1", antagonists=False, still_gate=False)
+                       marker_lowpass_hz=None, sparsity="l1", antagonists=False, still_gate=False,
+                       take_refine_iterations=0)
 
     def transfer_params(self, method: str) -> TransferParams:
         """The transfer parameters of ``method`` (``ribera_fit`` and ``ribera_fit_actor_rig`` take ``fit_guess``,
@@ -221,7 +232,9 @@ class RiberaParams:
                               sparsity=str(q.sparsity), sparsity_lambda_cm=float(q.sparsity_lambda_cm),
                               antagonists=bool(q.antagonists),
                               antagonist_lambda_cm=float(q.antagonist_lambda_cm), still_gate=bool(q.still_gate),
-                              still_ratio=float(q.still_ratio), coherence_frames=float(q.coherence_frames))
+                              still_ratio=float(q.still_ratio), coherence_frames=float(q.coherence_frames),
+                              take_refine_iterations=int(q.take_refine_iterations),
+                              take_refine_prior=float(q.take_refine_prior))
 
 
 # ----------------------------------------------------------------------------- Seol et al. 2012
@@ -399,6 +412,13 @@ def check_ribera(p: RiberaParams, where: str = f"{WHERE}.ribera") -> RiberaParam
                          path="config", fix="set bounds: [0, 1]")
     _interval(p.bounds, f"{where}.bounds", optional=True)
     check_primary(p.primary)
+    n = p.take_refine_iterations
+    if not isinstance(n, int) or isinstance(n, bool) or n < 0:
+        raise InputError(f"'{where}.take_refine_iterations' must be an integer >= 0, got {n!r}", path="config",
+                         fix="0 turns the refinement off")
+    v = p.take_refine_prior
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or v < 0:
+        raise InputError(f"'{where}.take_refine_prior' must be a number >= 0, got {v!r}", path="config")
     return p
 
 

@@ -21,6 +21,7 @@ from rigbuild.retarget.common import (
     interpolate_missing_rows,
     lowpass_markers,
     map_markers_to_vertices,
+    refit_rig_at_markers,
     reorder_markers,
     stabilize,
 )
@@ -180,6 +181,26 @@ def prepare_model(
                        rig_guesses=guesses)
 
 
+def refine_model_on_take(model: RiberaModel, markers: np.ndarray, weights: np.ndarray
+                         ) -> tuple[RiberaModel, np.ndarray]:
+    """Beyond the paper (``model.params.take_refine_iterations`` rounds, 0: the model and weights as given): the
+    EM's shape step on the whole take (:func:`rigbuild.retarget.common.refit_rig_at_markers`): the actor
+    blendshapes at the markers (``a0``, ``dp``) re-estimated from the take's frames stabilized against their
+    fitted expressions and the solved weights, held to E_Align's by ``take_refine_prior`` frames, then the take
+    solved again from them. markers (F, M, 3) mm (head motion, NaN gaps), weights (F, K) from ``model.retarget``.
+    Returns (the refined model, its weights (F, K))."""
+    from dataclasses import replace
+
+    a0, dp = model.a0, model.dp
+    for _ in range(int(model.params.take_refine_iterations)):
+        expr = model.a0[None] + np.einsum("fk,kmc->fmc", weights, model.dp)
+        stable, _, _ = stabilize(markers, expr)
+        b0, D = refit_rig_at_markers(a0, dp, stable, weights, model.params.take_refine_prior)
+        model = replace(model, a0=b0, dp=D)
+        weights = model.retarget(markers)
+    return model, weights
+
+
 def apply_model(
     model: RiberaModel,
     training: TrainingSet,
@@ -199,6 +220,7 @@ def apply_model(
     ok = check_frames(perf, what="performance", path=performance_path, allow_empty=allow_empty_frames)
     w = np.zeros((perf.shape[0], model.dp.shape[0]))
     w[ok] = model.retarget(perf[ok])
+    model, w[ok] = refine_model_on_take(model, perf[ok], w[ok])
     w = interpolate_missing_rows(w, ok)
     t2 = time.perf_counter()
     stable, _, _ = stabilize(perf, training.neutral, model.rigidity)
