@@ -308,11 +308,11 @@ def solve_actor_weights_refined(b0: np.ndarray, D: np.ndarray, markers: np.ndarr
 
     Returns (the final solve, the solve from the unrefined rig, refined b0 (M, 3), refined D (K, M, 3));
     ``iterations`` 0 returns the plain solve twice and the rig unchanged."""
+    b0, D = np.asarray(b0, dtype=np.float64), np.asarray(D, dtype=np.float64)
     first = solve_actor_weights(b0, D, markers, **solve_kw)
-    sol, b, d = first, np.asarray(b0, dtype=np.float64), np.asarray(D, dtype=np.float64)
+    sol, b, d = first, b0, D
     for _ in range(int(iterations)):
-        b, d = refine_rig_at_markers(np.asarray(b0, dtype=np.float64), np.asarray(D, dtype=np.float64), markers,
-                                     sol, prior)
+        b, d = refine_rig_at_markers(b0, D, markers, sol, prior)
         sol = solve_actor_weights(b, d, markers, initial=sol, **solve_kw)
     return sol, first, b, d
 

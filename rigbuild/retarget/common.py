@@ -289,7 +289,8 @@ def refit_rig_at_markers(prior_b0: np.ndarray, prior_D: np.ndarray, markers_in_r
     take with its head motion removed (NaN: a gap); weights (F, K). Each marker m on its own (closed form, the
     neutral as a shape of weight 1)::
 
-        min_(b0_m, D_m)  sum_f v_fm ||b0_m + D_m^T w_f - q_fm||^2 + prior (||b0_m - prior_b0_m||^2 + ||D_m - prior_D_m||^2)
+        min_(b0_m, D_m)  sum_f v_fm ||b0_m + D_m^T w_f - q_fm||^2
+                         + prior (||b0_m - prior_b0_m||^2 + ||D_m - prior_D_m||^2)
 
     ``prior`` counts as that many frames at full weight (dimensionless; 0: the take alone). Returns (b0 (M, 3),
     D (K, M, 3)) mm."""

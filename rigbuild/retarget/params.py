@@ -203,9 +203,9 @@ class RiberaParams:
         runs the paper as written whatever the config says: alpha 0.01, beta 0.1, r 15 (sec. 4), E_CEG as
         eq. 13 (``ceg_reference: character``), the RBF guesses of sec. 4.4 (``guess: rbf``), mu 0.3 and
         lambda 0.6 for cm (sec. 5), no weight bounds (eq. 16 has none; sec. 3 argues that bounding the weights
-        to [0, 1] does not make expressions valid), E_Fit on the stabilized frame (``rigid: fixed``) and no
-        marker low-pass, no refinement of the actor blendshapes on the take. The job's own settings (``allow_empty_frames``, ``preview_frames``, ``primary``) and
-        the other variants' fields are kept."""
+        to [0, 1] does not make expressions valid), E_Fit on the stabilized frame (``rigid: fixed``), no
+        marker low-pass and no refinement of the actor blendshapes on the take. The job's own settings
+        (``allow_empty_frames``, ``preview_frames``, ``primary``) and the other variants' fields are kept."""
         if method != PAPER_METHOD:
             return self
         from dataclasses import replace

@@ -475,8 +475,8 @@ def run_actor_rig(performance: Path, rig_path: Path, actor_rig: Mapping[str, Any
              rig_deltas_at_markers=D_refined)
     F = sol.weights.shape[0]
     values = {"n_frames": F, "n_markers": len(mmap.names), "map_s": t1 - t0, "solve_s": t2 - t1,
-              "frames_per_s": F / max(t2 - t1, 1e-9), "sweeps": sol.sweeps,
-              "converged": sol.converged, "refine_iterations": p.refine_iterations,
+              "frames_per_s": F / max(t2 - t1, 1e-9), "sweeps": sol.sweeps, "converged": sol.converged,
+              "refine_iterations": p.refine_iterations,
               "marker_residual_mm": float(np.nanmean(sol.residual_mm)),
               "unrefined_marker_residual_mm": float(np.nanmean(first.residual_mm)),
               "map_surface_rms_mm": mmap.surface_rms_mm, "markers_off_skin": len(far),
