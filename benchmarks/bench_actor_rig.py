@@ -76,8 +76,9 @@ def run(session: Path, which: str, p: ActorRigParams) -> dict:
     t1 = time.perf_counter()
     b0, D = sample_rig_at_markers(rig.neutral, rig.deltas, rig.faces, m)
     t2 = time.perf_counter()
-    sol = solve_actor_weights(b0, D, P, lambda_t=p.lambda_t, lambda_l1=p.lambda_l1, lambda_s=p.lambda_s,
-                              bounds=p.bounds, sweeps=p.sweeps, tol=p.tol, observable_mm=p.observable_mm)
+    sol = solve_actor_weights(b0, D, P, lambda_t=p.temporal_weight(take.fps), lambda_l1=p.lambda_l1,
+                              lambda_s=p.lambda_s, bounds=p.bounds, sweeps=p.sweeps, tol=p.tol,
+                              observable_mm=p.observable_mm)
     t3 = time.perf_counter()
     names = [str(s) for s in truth["shape_names"]]
     sub = actor.subset(names)

@@ -226,11 +226,39 @@ def test_rig_refinement_corrects_a_wrong_shape_from_the_take():
     assert np.nanmean(refined.residual_mm) < np.nanmean(plain.residual_mm)
 
 
+def test_temporal_term_joins_the_unrefined_and_the_final_solve():
+    """A smooth take (weights varying over about a second at 30 fps) with 0.5 mm marker noise: the temporal term
+    lowers the weight error (measured 0.0172 -> 0.0122 at lambda_t 200 mm^2); it enters the solve from the unrefined rig
+    (iterations 0: that solve is returned twice, the temporal solve warm-started from the plain one, at the cold
+    temporal solve's minimum) and the final solve after the refinement rounds, which run without it."""
+    rng = np.random.default_rng(10)
+    b0, D = _toy_rig(rng, M=30, K=6)
+    F = 150
+    time_s = np.arange(F) / 30.0
+    W = 0.5 + 0.45 * np.sin(2 * np.pi * 0.7 * time_s[:, None] * (1 + np.arange(6)) / 3 + np.arange(6))
+    P = b0 + np.einsum("fk,kmc->fmc", W, D) + rng.normal(scale=0.5, size=(F,) + b0.shape)
+    kw = dict(tol=1e-8, sweeps=400)
+    plain, _, _, _ = solve_actor_weights_refined(b0, D, P, 0, 10.0, **kw)
+    smooth, first, b, d = solve_actor_weights_refined(b0, D, P, 0, 10.0, lambda_t=200.0, **kw)
+    assert smooth is first and np.array_equal(b, b0) and np.array_equal(d, D)
+    cold = solve_actor_weights(b0, D, P, lambda_t=200.0, **kw)
+    assert np.abs(smooth.weights - cold.weights).max() < 1e-5
+    err_plain, err_smooth = np.abs(plain.weights - W).mean(), np.abs(smooth.weights - W).mean()
+    assert err_smooth < 0.8 * err_plain, (err_plain, err_smooth)
+    refined, first2, b2, d2 = solve_actor_weights_refined(b0, D, P, 2, 10.0, lambda_t=200.0, **kw)
+    assert np.array_equal(first2.weights, smooth.weights)
+    rounds, _, b3, d3 = solve_actor_weights_refined(b0, D, P, 2, 10.0, **kw)
+    assert np.array_equal(b2, b3) and np.array_equal(d2, d3)  # the rounds ran without the temporal term
+    assert np.abs(refined.weights - solve_actor_weights(b3, d3, P, lambda_t=200.0, **kw).weights).max() < 1e-5
+
+
 def test_actor_rig_params_are_checked():
     assert actor_rig_from_config({}).lambda_l1 >= 0
     assert actor_rig_from_config({}).refine_iterations == 0  # the plain solve unless a config turns it on
+    p = actor_rig_from_config({"lambda_t": 1.0, "lambda_velocity": 0.01})
+    assert p.temporal_weight(60.0) == pytest.approx(1.0 + 0.01 * 3600) and p.temporal_weight(30.0) == pytest.approx(10.0)
     for bad in ({"bounds": [1, 0]}, {"lambda_l1": -1}, {"sweeps": 0}, {"lamda_t": 1.0}, {"refine_iterations": -1},
-                {"refine_iterations": 1.5}, {"refine_prior": -2.0}):
+                {"refine_iterations": 1.5}, {"refine_prior": -2.0}, {"lambda_velocity": -0.01}):
         with pytest.raises(InputError):
             actor_rig_from_config(bad)
 

@@ -299,22 +299,32 @@ def refine_rig_at_markers(prior_b0: np.ndarray, prior_D: np.ndarray, markers: np
 
 
 def solve_actor_weights_refined(b0: np.ndarray, D: np.ndarray, markers: np.ndarray, iterations: int, prior: float,
-                                **solve_kw) -> tuple[ActorWeights, ActorWeights, np.ndarray, np.ndarray]:
+                                lambda_t: float = 0.0, **solve_kw) -> tuple[ActorWeights, ActorWeights, np.ndarray,
+                                                                            np.ndarray]:
     """:func:`solve_actor_weights`, then ``iterations`` rounds of (:func:`refine_rig_at_markers` held to ``b0``,
     ``D``; the weights and poses solved again from the refined rig, warm-started). Online refinement of the
     personalized rig on the take being solved: where the personalization got a shape wrong at the markers (the
     tracked range of motion's lids and lips), the take's own frames correct it; the prior keeps each shape near
     the personalized one, so the weights keep the personalized rig's meaning.
 
+    The temporal term ``lambda_t`` couples every frame, and its block sweeps converge slowly (demo_dev: 10-60
+    sweeps a solve against 4); it joins the solve from the unrefined rig and the final solve from the refined one,
+    each warm-started from the solve without it, while the refinement's rounds solve without it (demo_dev: the
+    same correlation within 0.001 at about a quarter of the time; docs/decisions.md).
+
     Returns (the final solve, the solve from the unrefined rig, refined b0 (M, 3), refined D (K, M, 3));
-    ``iterations`` 0 returns the plain solve twice and the rig unchanged."""
+    ``iterations`` 0 returns the solve from the unrefined rig twice and the rig unchanged."""
     b0, D = np.asarray(b0, dtype=np.float64), np.asarray(D, dtype=np.float64)
-    first = solve_actor_weights(b0, D, markers, **solve_kw)
-    sol, b, d = first, b0, D
+    lt = float(lambda_t)
+    plain = solve_actor_weights(b0, D, markers, **solve_kw)
+    first = plain if lt <= 0 else solve_actor_weights(b0, D, markers, lambda_t=lt, initial=plain, **solve_kw)
+    sol, b, d = plain, b0, D
     for _ in range(int(iterations)):
         b, d = refine_rig_at_markers(b0, D, markers, sol, prior)
         sol = solve_actor_weights(b, d, markers, initial=sol, **solve_kw)
-    return sol, first, b, d
+    if lt <= 0 or int(iterations) <= 0:
+        return (sol if lt <= 0 else first), first, b, d
+    return solve_actor_weights(b, d, markers, lambda_t=lt, initial=sol, **solve_kw), first, b, d
 
 
 # --------------------------------------------------------------------------------------- the marker map

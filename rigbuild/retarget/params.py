@@ -319,8 +319,10 @@ class ActorRigParams:
     :mod:`rigbuild.retarget.actor_rig`).
 
     lambda_t : temporal coherence ``lambda_t sum ||w_f - w_(f-1)||^2`` (mm^2, against the data term's squared
-        marker residuals in mm^2); lambda_l1 : sparsity ``lambda_l1 sum_k w_k`` (mm^2; the L1 norm, linear
-        because ``w >= 0``); lambda_s : Ma et al. 2016's ``lambda_s (1^T w)^2`` (mm^2);
+        marker residuals in mm^2); lambda_velocity : the same term independent of the take's frame rate, on the
+        weights' velocities: ``lambda_velocity sum ||(w_f - w_(f-1)) fps||^2`` (mm^2 s^2), i.e.
+        :meth:`temporal_weight` ``= lambda_t + lambda_velocity fps^2``; lambda_l1 : sparsity ``lambda_l1 sum_k w_k``
+        (mm^2; the L1 norm, linear because ``w >= 0``); lambda_s : Ma et al. 2016's ``lambda_s (1^T w)^2`` (mm^2);
     bounds : [lo, hi] of the weights; sweeps, tol : the block-coordinate solve stops when no weight moves more
         than ``tol`` in a sweep (at most ``sweeps``);
     marker_lowpass_hz : zero-phase Gaussian low-pass of the markers before the solve (-3 dB, Hz; None: off);
@@ -335,6 +337,7 @@ class ActorRigParams:
     """
 
     lambda_t: float = 0.0
+    lambda_velocity: float = 0.0
     lambda_l1: float = 0.5
     lambda_s: float = 0.0
     marker_lowpass_hz: Optional[float] = 8.0
@@ -347,6 +350,11 @@ class ActorRigParams:
     max_surface_distance_mm: float = 8.0
     refine_iterations: int = 0
     refine_prior: float = 10.0
+
+    def temporal_weight(self, fps: float) -> float:
+        """The solve's ``lambda_t`` (mm^2 per squared weight step between frames) for a take at ``fps`` Hz:
+        ``lambda_t + lambda_velocity * fps^2``."""
+        return float(self.lambda_t) + float(self.lambda_velocity) * float(fps) ** 2
 
 
 #: where the methods without the personalized rig read the range of motion (``params.retarget.take_markers.rom``)
@@ -445,8 +453,8 @@ def check_actor_rig(p: ActorRigParams, where: str = f"{WHERE}.actor_rig") -> Act
     _interval(p.bounds, f"{where}.bounds", optional=False)
     if not p.bounds[0] < p.bounds[1]:
         raise InputError(f"'{where}.bounds' must have lo < hi, got {p.bounds!r}", path="config", fix="e.g. [0, 1]")
-    for name in ("lambda_t", "lambda_l1", "lambda_s", "tol", "observable_mm", "max_surface_distance_mm",
-                 "refine_prior"):
+    for name in ("lambda_t", "lambda_velocity", "lambda_l1", "lambda_s", "tol", "observable_mm",
+                 "max_surface_distance_mm", "refine_prior"):
         v = getattr(p, name)
         if not isinstance(v, (int, float)) or isinstance(v, bool) or v < 0:
             raise InputError(f"'{where}.{name}' must be a number >= 0, got {v!r}", path="config")

@@ -446,8 +446,9 @@ def run_actor_rig(performance: Path, rig_path: Path, actor_rig: Mapping[str, Any
                           observable_mm=p.observable_mm)
     t1 = time.perf_counter()
     b0, D = sample_rig_at_markers(rig.neutral, rig.deltas, rig.faces, mmap)
+    lambda_t = p.temporal_weight(take.fps)
     sol, first, b0_refined, D_refined = solve_actor_weights_refined(
-        b0, D, P, p.refine_iterations, p.refine_prior, lambda_t=p.lambda_t, lambda_l1=p.lambda_l1,
+        b0, D, P, p.refine_iterations, p.refine_prior, lambda_t=lambda_t, lambda_l1=p.lambda_l1,
         lambda_s=p.lambda_s, bounds=p.bounds, sweeps=p.sweeps, tol=p.tol, observable_mm=p.observable_mm)
     t2 = time.perf_counter()
     far = [n for n, o in zip(mmap.names, mmap.normal_offset) if abs(o) > p.max_surface_distance_mm]
@@ -476,7 +477,7 @@ def run_actor_rig(performance: Path, rig_path: Path, actor_rig: Mapping[str, Any
     F = sol.weights.shape[0]
     values = {"n_frames": F, "n_markers": len(mmap.names), "map_s": t1 - t0, "solve_s": t2 - t1,
               "frames_per_s": F / max(t2 - t1, 1e-9), "sweeps": sol.sweeps, "converged": sol.converged,
-              "refine_iterations": p.refine_iterations,
+              "refine_iterations": p.refine_iterations, "lambda_t": lambda_t,
               "marker_residual_mm": float(np.nanmean(sol.residual_mm)),
               "unrefined_marker_residual_mm": float(np.nanmean(first.residual_mm)),
               "map_surface_rms_mm": mmap.surface_rms_mm, "markers_off_skin": len(far),
