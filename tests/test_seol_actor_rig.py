@@ -162,7 +162,8 @@ def test_stage_reads_the_personalized_rig_and_the_marker_map(tmp_path):
     write_rig_npz(tmp_path / "rig.npz", actor)
     mmap = vertex_marker_map(names, actor.marker_vertices, actor.faces)
     (tmp_path / "marker_map.json").write_text(json.dumps({"markers": mmap.to_json()}))
-    seol = {"alpha": 1e-9, "boundary_values": "perframe", "head_refine_iterations": 0}
+    seol = {"alpha": 1e-9, "boundary_values": "perframe", "head_refine_iterations": 0,
+            "actor_rig": {"sobolev_corner_hz": 2.0}}  # what seol_actor_rig runs with instead
 
     def outputs(method):
         return {k: str(tmp_path / method / f) for k, f in
@@ -188,6 +189,9 @@ def test_stage_reads_the_personalized_rig_and_the_marker_map(tmp_path):
     assert np.abs(w_ar - W).max() < 1e-3 < np.abs(w_plain - W).max()
     meta = json.loads(Path(outputs(SEOL_ACTOR_RIG_METHOD)["weights_json"]).read_text())["meta"]
     assert meta["actor_rig"] == str(tmp_path / "rig.npz") and meta["method"] == "seol2012_actor_rig"
+    assert meta["params"]["sobolev_corner_hz"] == 2.0 and meta["params"]["actor_rig"] == {}
+    plain_meta = json.loads(Path(outputs(SEOL_METHOD)["weights_json"]).read_text())["meta"]
+    assert plain_meta["params"]["sobolev_corner_hz"] is None and plain_meta["params"]["actor_rig"]
     frag = json.loads(Path(outputs(SEOL_ACTOR_RIG_METHOD)["metrics"]).read_text())["retarget"]
     assert METHOD_KEYS[SEOL_ACTOR_RIG_METHOD] == "seol_actor_rig"
     assert sorted(frag) == ["noconst_actor_rig", "perframe_prior_actor_rig", "perframe_range_actor_rig",
@@ -197,6 +201,21 @@ def test_stage_reads_the_personalized_rig_and_the_marker_map(tmp_path):
     plain = json.loads(Path(outputs(SEOL_METHOD)["metrics"]).read_text())["retarget"]
     assert sorted(plain) == ["noconst", "perframe_prior", "perframe_range", "seol"]
     assert "rig_space_shapes" not in plain["seol"]["dome"]
+
+
+def test_seol_actor_rig_fields_are_checked_and_replace_the_blocks():
+    from rigbuild.retarget.params import seol_from_config
+
+    p = seol_from_config({"weight_bounds": [0, 1.5], "actor_rig": {"sobolev_corner_hz": 10.0, "weight_bounds": [0, 1]}})
+    assert p.for_method(SEOL_METHOD) is p and p.weight_bounds == (0, 1.5)
+    q = p.for_method(SEOL_ACTOR_RIG_METHOD)
+    assert q.weight_bounds == (0, 1) and q.sobolev_corner_hz == 10.0 and q.actor_rig == {} and q.alpha == p.alpha
+    with pytest.raises(InputError, match="did you mean 'sobolev_corner_hz'"):
+        seol_from_config({"actor_rig": {"sobolev_cornerhz": 1.0}})
+    with pytest.raises(InputError, match="actor_rig.gaps"):
+        seol_from_config({"actor_rig": {"gaps": "fill"}})
+    with pytest.raises(InputError, match="another actor_rig block"):
+        seol_from_config({"actor_rig": {"actor_rig": {"alpha": 1.0}}})
 
 
 # ------------------------------------------------------------------------------------------ the DAG

@@ -17,7 +17,7 @@ to [0, 1], the solver does not by default). The method ``ribera`` (:data:`PAPER_
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Mapping, Optional
 
 from rigbuild.errors import InputError
@@ -284,6 +284,9 @@ class SeolParams:
         (:data:`rigbuild.retarget.plausible.ANTAGONISTS`) never on together (a penalty
         ``antagonist_weight w_a w_b``, mm^2 per unit weight^2, pushes one to yield; then the weaker, over
         ``coherence_frames``, is pinned at 0 and the spacetime solve re-run).
+    actor_rig : fields of this block that method ``seol_actor_rig`` runs with in place of these (:meth:`for_method`;
+        its source side is the actor's own rig, not a guessed scale map, so it may match positions more and keep
+        the rig's weight range); empty: the same parameters as ``seol``.
     """
 
     alpha: float = DEFAULT_ALPHA
@@ -310,6 +313,19 @@ class SeolParams:
     antagonists: bool = False
     antagonist_weight: float = 0.0
     coherence_frames: float = 4.0
+    actor_rig: dict = field(default_factory=dict)
+
+    def for_method(self, method: str) -> "SeolParams":
+        """The parameters ``method`` runs with: for ``seol_actor_rig`` this block with the ``actor_rig`` fields in
+        place (InputError, with "did you mean", on an unknown field), for the other methods this block."""
+        from rigbuild.retarget.methods import SEOL_ACTOR_RIG_METHOD
+
+        if method != SEOL_ACTOR_RIG_METHOD or not self.actor_rig:
+            return self
+        own = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "actor_rig"}
+        if "actor_rig" in self.actor_rig:
+            raise InputError(f"'{WHERE}.seol.actor_rig' cannot hold another actor_rig block", path="config")
+        return from_mapping(SeolParams, {**own, **dict(self.actor_rig)}, f"{WHERE}.seol.actor_rig")
 
 
 # ----------------------------------------------------------------------------- the actor's own rig
@@ -446,6 +462,12 @@ def check_seol(p: SeolParams, where: str = f"{WHERE}.seol") -> SeolParams:
         check_keys(p.sobolev, SOBOLEV_KEYS, f"{where}.sobolev")
     if not isinstance(p.pins or {}, Mapping):
         raise InputError(f"'{where}.pins' must be a mapping {{frame: {{shape: value}}}}", path="config")
+    if not isinstance(p.actor_rig or {}, Mapping):
+        raise InputError(f"'{where}.actor_rig' must be a mapping of this block's fields", path="config")
+    if p.actor_rig:
+        from rigbuild.retarget.methods import SEOL_ACTOR_RIG_METHOD
+
+        check_seol(p.for_method(SEOL_ACTOR_RIG_METHOD), f"{where}.actor_rig")
     return p
 
 

@@ -359,9 +359,9 @@ def run_seol(performance: Path, rig_path: Path, neutral: Sequence[Path] | None, 
 
     from rigbuild.retarget.methods import SEOL_ACTOR_RIG_METHOD, SEOL_METHODS
 
-    p = seol_from_config(seol)
     if method not in SEOL_METHODS:
         raise InputError(f"unknown method '{method}'", path="rules", fix=f"use one of {SEOL_METHODS}")
+    p = seol_from_config(seol).for_method(method)
     actor_rig, marker_map = one_input(actor_rig), one_input(marker_map)
     rig_at_markers = actor_rig_for_method(method, SEOL_ACTOR_RIG_METHOD, "retarget_seol", actor_rig, marker_map,
                                           one_input(actor_solve))
