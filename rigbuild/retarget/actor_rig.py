@@ -322,9 +322,9 @@ def solve_actor_weights_refined(b0: np.ndarray, D: np.ndarray, markers: np.ndarr
     for _ in range(int(iterations)):
         b, d = refine_rig_at_markers(b0, D, markers, sol, prior)
         sol = solve_actor_weights(b, d, markers, initial=sol, **solve_kw)
-    if lt <= 0 or int(iterations) <= 0:
-        return (sol if lt <= 0 else first), first, b, d
-    return solve_actor_weights(b, d, markers, lambda_t=lt, initial=sol, **solve_kw), first, b, d
+    if lt > 0:
+        sol = solve_actor_weights(b, d, markers, lambda_t=lt, initial=sol, **solve_kw) if int(iterations) > 0 else first
+    return sol, first, b, d
 
 
 # --------------------------------------------------------------------------------------- the marker map
