@@ -228,9 +228,9 @@ def test_rig_refinement_corrects_a_wrong_shape_from_the_take():
 
 def test_temporal_term_joins_the_unrefined_and_the_final_solve():
     """A smooth take (weights varying over about a second at 30 fps) with 0.5 mm marker noise: the temporal term
-    lowers the weight error (measured 0.0172 -> 0.0122 at lambda_t 200 mm^2); it enters the solve from the unrefined rig
-    (iterations 0: that solve is returned twice, the temporal solve warm-started from the plain one, at the cold
-    temporal solve's minimum) and the final solve after the refinement rounds, which run without it."""
+    lowers the weight error (measured 0.0172 -> 0.0122 at lambda_t 200 mm^2); it enters the solve from the
+    unrefined rig (iterations 0: that solve is returned twice, the temporal solve warm-started from the plain one,
+    at the cold temporal solve's minimum) and the final solve after the refinement rounds, which run without it."""
     rng = np.random.default_rng(10)
     b0, D = _toy_rig(rng, M=30, K=6)
     F = 150
@@ -256,7 +256,8 @@ def test_actor_rig_params_are_checked():
     assert actor_rig_from_config({}).lambda_l1 >= 0
     assert actor_rig_from_config({}).refine_iterations == 0  # the plain solve unless a config turns it on
     p = actor_rig_from_config({"lambda_t": 1.0, "lambda_velocity": 0.01})
-    assert p.temporal_weight(60.0) == pytest.approx(1.0 + 0.01 * 3600) and p.temporal_weight(30.0) == pytest.approx(10.0)
+    assert p.temporal_weight(60.0) == pytest.approx(1.0 + 0.01 * 3600)
+    assert p.temporal_weight(30.0) == pytest.approx(10.0)
     for bad in ({"bounds": [1, 0]}, {"lambda_l1": -1}, {"sweeps": 0}, {"lamda_t": 1.0}, {"refine_iterations": -1},
                 {"refine_iterations": 1.5}, {"refine_prior": -2.0}, {"lambda_velocity": -0.01}):
         with pytest.raises(InputError):

@@ -206,7 +206,8 @@ def test_stage_reads_the_personalized_rig_and_the_marker_map(tmp_path):
 def test_seol_actor_rig_fields_are_checked_and_replace_the_blocks():
     from rigbuild.retarget.params import seol_from_config
 
-    p = seol_from_config({"weight_bounds": [0, 1.5], "actor_rig": {"sobolev_corner_hz": 10.0, "weight_bounds": [0, 1]}})
+    p = seol_from_config({"weight_bounds": [0, 1.5],
+                          "actor_rig": {"sobolev_corner_hz": 10.0, "weight_bounds": [0, 1]}})
     assert p.for_method(SEOL_METHOD) is p and p.weight_bounds == (0, 1.5)
     q = p.for_method(SEOL_ACTOR_RIG_METHOD)
     assert q.weight_bounds == (0, 1) and q.sobolev_corner_hz == 10.0 and q.actor_rig == {} and q.alpha == p.alpha

@@ -22,7 +22,8 @@ from typing import Any, Mapping, Optional
 
 from rigbuild.errors import InputError
 from rigbuild.params import from_mapping
-from rigbuild.retarget.methods import PRIMARY_RIBERA_METHOD, RIBERA_FIT_METHODS, check_primary
+from rigbuild.retarget.methods import (PRIMARY_RIBERA_METHOD, RIBERA_FIT_METHODS, SEOL_ACTOR_RIG_METHOD,
+                                       check_primary)
 
 WHERE = "params.retarget"
 
@@ -318,8 +319,6 @@ class SeolParams:
     def for_method(self, method: str) -> "SeolParams":
         """The parameters ``method`` runs with: for ``seol_actor_rig`` this block with the ``actor_rig`` fields in
         place (InputError, with "did you mean", on an unknown field), for the other methods this block."""
-        from rigbuild.retarget.methods import SEOL_ACTOR_RIG_METHOD
-
         if method != SEOL_ACTOR_RIG_METHOD or not self.actor_rig:
             return self
         own = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "actor_rig"}
@@ -465,8 +464,6 @@ def check_seol(p: SeolParams, where: str = f"{WHERE}.seol") -> SeolParams:
     if not isinstance(p.actor_rig or {}, Mapping):
         raise InputError(f"'{where}.actor_rig' must be a mapping of this block's fields", path="config")
     if p.actor_rig:
-        from rigbuild.retarget.methods import SEOL_ACTOR_RIG_METHOD
-
         check_seol(p.for_method(SEOL_ACTOR_RIG_METHOD), f"{where}.actor_rig")
     return p
 
