@@ -12,9 +12,10 @@ performance's markers are read through that rig:
 2. **Actor weights** (:func:`solve_actor_weights`): per frame, rigid head motion and weights in ``bounds`` of
    the rig's shapes sampled at the markers (:func:`sample_rig_at_markers`), the personalization's weight step
    (Ma et al. eq. 3-4: ``||x(w) - p||^2 + lambda_s (1^T w)^2``) in marker space, with the retargeting's temporal
-   term ``lambda_t ||w_f - w_(f-1)||^2`` and L1 sparsity ``lambda_l1 1^T w``. Block-coordinate descent over
-   all frames at once: batched weighted Kabsch for the rigid motion, then the even and the odd frames' exact box
-   QPs (:func:`rigbuild.geometry.box_qp.solve_box_qp_batched`; each half's temporal neighbours are fixed).
+   term ``lambda_t ||w_f - w_(f-1)||^2`` and L1 sparsity ``lambda_l1 1^T w``. Gauss-Newton sweeps over all
+   frames at once: the rigid motion eliminated, then the weights by exact box QPs, one per frame
+   (:func:`rigbuild.geometry.box_qp.solve_box_qp_batched`) or, with the temporal term, one over every frame with
+   a block tridiagonal Hessian (:func:`rigbuild.geometry.block_tridiagonal.solve_box_qp_block_tridiagonal`).
    Optionally (:func:`solve_actor_weights_refined`, beyond the issue's solve) the EM's shape step in marker space
    (:func:`refine_rig_at_markers`) alternates with it: the rig at the markers is re-estimated from the take's own
    frames, held to the personalized rig by a prior.
@@ -33,6 +34,7 @@ from typing import Sequence
 import numpy as np
 
 from rigbuild.errors import InputError
+from rigbuild.geometry.block_tridiagonal import solve_box_qp_block_tridiagonal
 from rigbuild.geometry.box_qp import solve_box_qp_batched
 from rigbuild.geometry.mesh import closest_surface_points, points_on_surface
 from rigbuild.geometry.rigid import fit_rigid_motion_batched
@@ -113,11 +115,15 @@ def vertex_marker_map(names: Sequence[str], vertices: np.ndarray, faces: np.ndar
 
 
 # ------------------------------------------------------------------------------------------- the solve
+#: most active-set passes of a temporal weight step (:func:`solve_box_qp_block_tridiagonal`)
+TEMPORAL_MAX_PASSES = 100
+
+
 @dataclass
 class ActorWeights:
     """weights (F, K) in the rig's shape order; rotations (F, 3, 3), translations (F, 3) mm: the head pose
     ``p = R (b0 + D w) + t``; residual_mm (F,) RMS marker residual per frame (NaN: no marker);
-    observable (K,) bool: the shapes solved (the others are 0); sweeps: block-coordinate sweeps run;
+    observable (K,) bool: the shapes solved (the others are 0); sweeps: Gauss-Newton sweeps run;
     converged: the last sweep moved no weight more than ``tol`` (and every QP converged)."""
 
     weights: np.ndarray
@@ -200,11 +206,11 @@ def solve_actor_weights(b0: np.ndarray, D: np.ndarray, markers: np.ndarray, lamb
 
     Each sweep is a joint Gauss-Newton step of every frame, as the personalization's frame fit: the rotation
     linearized about the current one (``R = R0 exp([omega])``, ``t = t0 + R0 tau``), the six rigid unknowns
-    eliminated (Schur complement), and the weights from exact box QPs, the even frames then the odd ones given
-    their temporal neighbours. The poses start from a batched Kabsch fit of the neutral (``initial``: from that
-    solve's weights and poses instead, e.g. a solve of the same take with a slightly different rig). A frame with
-    fewer than 3 markers keeps the nearest posed frame's pose; one with none takes its weights from the temporal
-    term.
+    eliminated (Schur complement), and the weights from exact box QPs: per frame, or with the temporal term one
+    over all frames (block tridiagonal, warm-started from the sweep's weights). The poses start from a batched
+    Kabsch fit of the neutral (``initial``: from that solve's weights and poses instead, e.g. a solve of the same
+    take with a slightly different rig). A frame with fewer than 3 markers keeps the nearest posed frame's pose;
+    one with none takes its weights from the temporal term.
     """
     b0 = np.asarray(b0, dtype=np.float64)
     D = np.asarray(D, dtype=np.float64)
@@ -241,8 +247,7 @@ def solve_actor_weights(b0: np.ndarray, D: np.ndarray, markers: np.ndarray, lamb
     if initial is not None:
         W = np.clip(np.asarray(initial.weights, dtype=np.float64)[:, observable], lo, hi)
         R, t = np.array(initial.rotations, dtype=np.float64), np.array(initial.translations, dtype=np.float64)
-    halves = [np.arange(0, F, 2), np.arange(1, F, 2)] if lt > 0 else [np.arange(F)]
-    eye3 = np.eye(3)
+    U_time = np.broadcast_to(-lt * np.eye(Ko), (max(F - 1, 0), Ko, Ko))  # the temporal term's coupling blocks
     converged_qp = True
     done, moved = 0, np.inf
     for done in range(1, int(sweeps) + 1):
@@ -258,16 +263,14 @@ def solve_actor_weights(b0: np.ndarray, D: np.ndarray, markers: np.ndarray, lamb
         Hred = G - Hzw_t @ S[..., :Ko] + reg
         fred = gw - (Hzw_t @ S[..., Ko:])[..., 0]
         W_old = W.copy()
-        for half in halves:
-            Hh = Hred[half] + (lt * nbrs[half])[:, None, None] * np.eye(Ko)
-            fh = fred[half] + lambda_l1
-            if lt > 0:
-                prev = np.where((half > 0)[:, None], W[np.maximum(half - 1, 0)], 0.0)
-                nxt = np.where((half < F - 1)[:, None], W[np.minimum(half + 1, F - 1)], 0.0)
-                fh = fh - lt * (prev + nxt)
-            x, ok = solve_box_qp_batched(Hh, fh, lo, hi, x0=W[half])
+        if lt > 0:  # every frame's weights at once: a box QP with a block tridiagonal Hessian
+            A = Hred + (lt * nbrs)[:, None, None] * np.eye(Ko)
+            W, passes = solve_box_qp_block_tridiagonal(A, U_time, -(fred + lambda_l1), lo, hi, x0=W,
+                                                       max_iterations=TEMPORAL_MAX_PASSES)
+            converged_qp &= passes <= TEMPORAL_MAX_PASSES
+        else:
+            W, ok = solve_box_qp_batched(Hred, fred + lambda_l1, lo, hi, x0=W)
             converged_qp &= bool(ok.all())
-            W[half] = x
         z = -(S[..., Ko] + (S[..., :Ko] @ W[..., None])[..., 0]) * posable[:, None]
         R_new = R @ _rotation_exp(z[:, :3])
         t_new = t + (R @ z[:, 3:, None])[..., 0]
@@ -307,10 +310,9 @@ def solve_actor_weights_refined(b0: np.ndarray, D: np.ndarray, markers: np.ndarr
     tracked range of motion's lids and lips), the take's own frames correct it; the prior keeps each shape near
     the personalized one, so the weights keep the personalized rig's meaning.
 
-    The temporal term ``lambda_t`` couples every frame, and its block sweeps converge slowly (demo_dev: 10-60
-    sweeps a solve against 4); it joins the solve from the unrefined rig and the final solve from the refined one,
-    each warm-started from the solve without it, while the refinement's rounds solve without it (demo_dev: the
-    same correlation within 0.001 at about a quarter of the time; docs/decisions.md).
+    The temporal term ``lambda_t`` couples every frame, which makes a solve dearer; it joins the solve from the
+    unrefined rig and the final solve from the refined one, each warm-started from the solve without it, while the
+    refinement's rounds solve without it (docs/decisions.md).
 
     Returns (the final solve, the solve from the unrefined rig, refined b0 (M, 3), refined D (K, M, 3));
     ``iterations`` 0 returns the solve from the unrefined rig twice and the rig unchanged."""

@@ -338,7 +338,7 @@ class ActorRigParams:
         weights' velocities: ``lambda_velocity sum ||(w_f - w_(f-1)) fps||^2`` (mm^2 s^2), i.e.
         :meth:`temporal_weight` ``= lambda_t + lambda_velocity fps^2``; lambda_l1 : sparsity ``lambda_l1 sum_k w_k``
         (mm^2; the L1 norm, linear because ``w >= 0``); lambda_s : Ma et al. 2016's ``lambda_s (1^T w)^2`` (mm^2);
-    bounds : [lo, hi] of the weights; sweeps, tol : the block-coordinate solve stops when no weight moves more
+    bounds : [lo, hi] of the weights; sweeps, tol : the Gauss-Newton solve stops when no weight moves more
         than ``tol`` in a sweep (at most ``sweeps``);
     marker_lowpass_hz : zero-phase Gaussian low-pass of the markers before the solve (-3 dB, Hz; None: off);
     map_frames : frames of the take spread evenly over it that place the markers on the rig; map_iterations :

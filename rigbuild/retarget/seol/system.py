@@ -14,8 +14,9 @@ import scipy.linalg
 from rigbuild.errors import InputError
 from rigbuild.retarget.params import DEFAULT_ALPHA
 from rigbuild.retarget.seol.checks import _frame_indices, shape_index, weight_interval
-from rigbuild.retarget.seol.solvers import (LOCAL_PASS_FRACTION, LOCAL_PASS_HALO, _dilate_frames,
-                                           _path_laplacian_free, _solve_kronecker, _solve_pinned_block_tridiagonal)
+from rigbuild.geometry.block_tridiagonal import (block_tridiagonal_gradient, solve_box_qp_block_tridiagonal,
+                                                 solve_pinned_block_tridiagonal)
+from rigbuild.retarget.seol.solvers import _path_laplacian_free, _solve_kronecker
 
 #: most active-set passes of the bounded spacetime solve in :func:`retarget_seol`
 BOUNDED_MAX_PASSES = 200
@@ -155,7 +156,7 @@ class SeolSystem:
         G = self._G_reg
         Pc, rpos, constant = self._position_terms(frames)
         if self.visibility is not None:
-            return _solve_pinned_block_tridiagonal(*self._quadratic(start, stop), mask, vals)
+            return solve_pinned_block_tridiagonal(*self._quadratic(start, stop), mask, vals)
         # movement rhs: (L SB)_t = B^T (v_t - v_{t+1}) with v_t = s_t - s_{t-1} inside the window
         SB = self._SB[start:stop]
         rv = np.zeros((n, K))
@@ -186,7 +187,7 @@ class SeolSystem:
             W[free] = _solve_kronecker(Ld, Lo, G, Pc, r[free], self._eig)
             return W
         # general path: block tridiagonal with pinned variables eliminated (identity rows)
-        return _solve_pinned_block_tridiagonal(*self._quadratic(start, stop), mask, vals)
+        return solve_pinned_block_tridiagonal(*self._quadratic(start, stop), mask, vals)
 
     def _quadratic(self, start: int = 0, stop: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Eq. (4) over frames ``start..stop-1`` as ``E = 1/2 w^T H w - r^T w + const`` (half of eq. (4), with
@@ -223,12 +224,7 @@ class SeolSystem:
         """(n, K) gradient of eq. (4)'s energy over frames ``start..stop-1`` at W (n, K): ``H w - r``
         (:meth:`_quadratic`; pass its result as ``quadratic`` to reuse it)."""
         A, U, r = self._quadratic(start, stop) if quadratic is None else quadratic
-        W = np.asarray(W, dtype=np.float64)
-        g = np.einsum("tij,tj->ti", A, W) - r
-        if W.shape[0] > 1:
-            g[:-1] += np.einsum("tij,tj->ti", U, W[1:])
-            g[1:] += np.einsum("tji,tj->ti", U, W[:-1])
-        return g
+        return block_tridiagonal_gradient(A, U, r, W)
 
     def _pair_terms(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Velocity blocks with gaps: for consecutive frames (t-1, t) of ``frames``,
@@ -274,23 +270,12 @@ class SeolSystem:
     def solve_bounded(self, pin_mask: np.ndarray, pin_values: np.ndarray, bounds: tuple[float, float] | None = None,
                       max_iterations: int = 50, tolerance: float = 1e-9, start: int = 0,
                       stop: int | None = None, linear: np.ndarray | None = None) -> tuple[np.ndarray, int]:
-        """:meth:`solve` with every free weight kept in ``bounds`` = (lo, hi) (not in the paper).
-
-        Primal-dual active set (Hintermueller, Ito and Kunisch 2002): from the unconstrained minimizer's
-        violations, each pass solves with the bound pins, keeps the pins whose Lagrange multiplier (the energy's
-        gradient, :meth:`gradient`) has the right sign and pins every free weight outside the bounds; it
-        stops when a global pass no longer changes the sets (a KKT point). A pass that changes the sets in
-        few frames is followed by local passes over those frames (:data:`LOCAL_PASS_FRACTION`; the other
-        frames keep their weights) until they settle, then a global pass checks. When a set repeats (the primal-dual passes can
-        cycle) the monotone primal method finishes: from a feasible point, step towards each pass's
-        solution up to the first bound crossed (pinning it), and at a feasible minimizer release the pins
-        whose multiplier has the wrong sign; the energy falls every pass, so it cannot cycle. After
-        ``max_iterations`` the weights are clipped. Each pass solves only the free weights
-        (:func:`solve_block_tridiagonal_free`). Each pass is the exact spacetime minimizer under its
-        pins, so the movement matching is re-solved around the bound instead of being cut off as a clamp
-        would. ``bounds`` defaults to the system's; ``start``/``stop`` as in :meth:`solve`; ``linear`` (n, K):
-        an extra linear term ``sum linear_tk w_tk`` of eq. (4) (the reweighted sparsity option of
-        :func:`~rigbuild.retarget.seol.retarget.retarget_seol`).
+        """:meth:`solve` with every free weight kept in ``bounds`` = (lo, hi) (not in the paper): the exact
+        spacetime minimizer under the bounds by a primal-dual active set
+        (:func:`rigbuild.geometry.block_tridiagonal.solve_box_qp_block_tridiagonal`), so the movement matching is
+        re-solved around a bound instead of being cut off as a clamp would. ``bounds`` defaults to the system's;
+        ``start``/``stop`` as in :meth:`solve`; ``linear`` (n, K): an extra linear term ``sum linear_tk w_tk`` of
+        eq. (4) (the reweighted sparsity option of :func:`~rigbuild.retarget.seol.retarget.retarget_seol`).
         Returns (W (n, K) within bounds, passes).
         """
         bounds = self.bounds if bounds is None else bounds
@@ -305,72 +290,7 @@ class SeolSystem:
         if user.shape != quad[2].shape or np.shape(pin_values) != quad[2].shape:
             raise InputError(f"pins must be {quad[2].shape}, got {user.shape}")
         vals = np.where(user, np.asarray(pin_values, dtype=np.float64), 0.0)
-        W = _solve_pinned_block_tridiagonal(*quad, user, vals)  # the unconstrained minimizer: first guess
-        at_lo = ~user & (W < lo)
-        at_hi = ~user & (W > hi)
-        seen: set[bytes] = set()
-        primal = False
-        window = None  # frames of a local pass (None: a global pass)
-        for it in range(1, max_iterations + 1):
-            fixed = user | at_lo | at_hi
-            v = np.where(at_lo, lo, np.where(at_hi, hi, vals))
-            if window is None:
-                W_new = _solve_pinned_block_tridiagonal(*quad, fixed, v)
-            else:  # local pass: the frames outside the window keep their weights
-                out = np.broadcast_to(~window[:, None], fixed.shape)
-                W_new = _solve_pinned_block_tridiagonal(*quad, fixed | out, np.where(out, W, v))
-            g = self.gradient(W_new, start, stop, quad)
-            scale = tolerance * max(1.0, float(np.abs(g).max()))
-            free = ~fixed
-            below, above = free & (W_new < lo - tolerance), free & (W_new > hi + tolerance)
-            if not primal:
-                # primal-dual pass: keep a bound whose multiplier has the right sign, add every violator
-                new_lo = ~user & ((at_lo & (g >= -scale)) | below)
-                new_hi = ~user & ((at_hi & (g <= scale)) | above)
-                if window is not None:
-                    new_lo = np.where(window[:, None], new_lo, at_lo)
-                    new_hi = np.where(window[:, None], new_hi, at_hi)
-                changed = ((new_lo != at_lo) | (new_hi != at_hi)).any(1)
-                W = W_new
-                if not changed.any():
-                    if window is None:
-                        return W, it  # a global pass with no change: a KKT point
-                    window = None  # the local passes settled: verify with a global pass
-                    continue
-                key = np.packbits(np.concatenate([new_lo, new_hi], axis=1)).tobytes()
-                if window is None:
-                    if key in seen:  # the primal-dual passes cycle: finish with the monotone primal method
-                        primal = True
-                        W = np.clip(W_new, lo, hi)
-                        at_lo, at_hi = ~user & (W <= lo), ~user & (W >= hi)
-                        continue
-                    seen.add(key)
-                    seen_local: set[bytes] = set()
-                elif key in seen_local:  # the local passes cycle: back to global passes
-                    window = None
-                    at_lo, at_hi = new_lo, new_hi
-                    continue
-                seen_local.add(key)
-                # few frames changed: the next passes re-solve only around them
-                window = _dilate_frames(changed, LOCAL_PASS_HALO) if changed.mean() < LOCAL_PASS_FRACTION else None
-            elif below.any() or above.any():
-                # primal pass from the feasible W: step towards W_new up to the first bound it crosses
-                d = W_new - W
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    ratio = np.where(below, (lo - W) / d, np.where(above, (hi - W) / d, np.inf))
-                step = float(np.clip(ratio.min(), 0.0, 1.0))
-                W = np.clip(W + step * d, lo, hi)
-                block = (below | above) & (ratio <= step + 1e-12)
-                new_lo, new_hi = at_lo | (block & below), at_hi | (block & above)
-            else:
-                # feasible minimizer under the pins: release every pin whose multiplier has the wrong sign
-                W = W_new
-                new_lo = at_lo & ~(g < -scale)
-                new_hi = at_hi & ~(g > scale)
-            if np.array_equal(new_lo, at_lo) and np.array_equal(new_hi, at_hi) and not (below.any() or above.any()):
-                return W, it
-            at_lo, at_hi = new_lo, new_hi
-        return np.clip(W, lo, hi), max_iterations + 1
+        return solve_box_qp_block_tridiagonal(*quad, lo, hi, user, vals, max_iterations, tolerance)
 
     def solve_spacetime(self, boundary_frames: Sequence[int] = (0, -1),
                         pins: Mapping[int, Mapping[str, float] | np.ndarray] | None = None) -> np.ndarray:
