@@ -1,11 +1,14 @@
 """Compare two metrics.json files value by value (a refactor must leave every number as it was).
 
     python scripts/dev/compare_metrics.py BEFORE.json AFTER.json [--renames RENAMES.json] [--rtol 1e-9]
+        [--merge-before PREFIX=FILE[:KEY] ...]
 
 RENAMES.json maps an old flat key prefix to its new one ({"tracking.rom00_lost_frames":
-"tracking.sequences.rom00.lost_frames"}); the longest matching prefix is applied to BEFORE's keys. Wall-clock
-keys (seconds, *_s, *_ms, frames_per_s) are left out. Exit status 1 when a value differs or a key is missing on
-either side.
+"tracking.sequences.rom00.lost_frames"}); the longest matching prefix is applied to BEFORE's keys.
+``--merge-before`` adds the scalars of another JSON file of the BEFORE run (its ``KEY`` member) under ``PREFIX``,
+for values that run kept in a job's own file and the AFTER run also gathers into metrics.json (``tracking.sequences=
+results/demo/track/track_summary.json:sequences``). Wall-clock keys (seconds, *_s, *_ms, frames_per_s) are left
+out. Exit status 1 when a value differs or a key is missing on either side.
 """
 
 from __future__ import annotations
@@ -48,16 +51,36 @@ def compare(before: dict, after: dict, renames: dict[str, str], rtol: float) -> 
     return problems
 
 
+def merged_before(before: dict, spec: str) -> dict:
+    """``before`` with the scalars of ``FILE[:KEY]`` under the dotted ``PREFIX`` (spec ``PREFIX=FILE[:KEY]``)."""
+    prefix, _, source = spec.partition("=")
+    path, _, member = source.partition(":")
+    extra = json.loads(Path(path).read_text())
+    extra = extra[member] if member else extra
+    node = before
+    for part in prefix.split("."):
+        if not isinstance(node.get(part), dict):
+            node[part] = {}
+        node = node[part]
+    for k, v in flatten_metrics(extra).items():
+        if isinstance(v, (int, float, str, bool)) or v is None:
+            node[k] = v
+    return before
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("before")
     ap.add_argument("after")
     ap.add_argument("--renames", help="JSON file: old flat key prefix -> new prefix")
     ap.add_argument("--rtol", type=float, default=1e-9)
+    ap.add_argument("--merge-before", action="append", default=[], metavar="PREFIX=FILE[:KEY]")
     args = ap.parse_args(argv)
     renames = json.loads(Path(args.renames).read_text()) if args.renames else {}
-    problems = compare(json.loads(Path(args.before).read_text()), json.loads(Path(args.after).read_text()),
-                       renames, args.rtol)
+    before = json.loads(Path(args.before).read_text())
+    for spec in args.merge_before:
+        before = merged_before(before, spec)
+    problems = compare(before, json.loads(Path(args.after).read_text()), renames, args.rtol)
     n = len(flatten_metrics(json.loads(Path(args.after).read_text())))
     for p in problems:
         print(p)
