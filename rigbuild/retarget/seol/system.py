@@ -12,10 +12,10 @@ import numpy as np
 import scipy.linalg
 
 from rigbuild.errors import InputError
-from rigbuild.retarget.params import DEFAULT_ALPHA
-from rigbuild.retarget.seol.checks import _frame_indices, shape_index, weight_interval
 from rigbuild.geometry.block_tridiagonal import (block_tridiagonal_gradient, solve_box_qp_block_tridiagonal,
                                                  solve_pinned_block_tridiagonal)
+from rigbuild.retarget.params import DEFAULT_ALPHA
+from rigbuild.retarget.seol.checks import _frame_indices, shape_index, weight_interval
 from rigbuild.retarget.seol.solvers import _path_laplacian_free, _solve_kronecker
 
 #: most active-set passes of the bounded spacetime solve in :func:`retarget_seol`
