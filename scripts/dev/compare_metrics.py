@@ -6,8 +6,9 @@
 RENAMES.json maps an old flat key prefix to its new one ({"tracking.rom00_lost_frames":
 "tracking.sequences.rom00.lost_frames"}); the longest matching prefix is applied to BEFORE's keys.
 ``--merge-before`` adds the scalars of another JSON file of the BEFORE run (its ``KEY`` member) under ``PREFIX``,
-for values that run kept in a job's own file and the AFTER run also gathers into metrics.json (``tracking.sequences=
-results/demo/track/track_summary.json:sequences``). Wall-clock keys (seconds, *_s, *_ms, frames_per_s) are left
+for values that run kept in a job's own file and the AFTER run also gathers into metrics.json (``tracking.per_sequence=
+results/demo/track/track_summary.json:sequences``, renamed to ``tracking.sequences`` by
+benchmarks/out/architecture/renames.json). Wall-clock keys (seconds, *_s, *_ms, frames_per_s) are left
 out. Exit status 1 when a value differs or a key is missing on either side.
 """
 
@@ -80,8 +81,9 @@ def main(argv: list[str] | None = None) -> int:
     before = json.loads(Path(args.before).read_text())
     for spec in args.merge_before:
         before = merged_before(before, spec)
-    problems = compare(before, json.loads(Path(args.after).read_text()), renames, args.rtol)
-    n = len(flatten_metrics(json.loads(Path(args.after).read_text())))
+    after = json.loads(Path(args.after).read_text())
+    problems = compare(before, after, renames, args.rtol)
+    n = len(flatten_metrics(after))
     for p in problems:
         print(p)
     print(f"{n} keys after; {len(problems)} differences (timing keys left out)")
