@@ -157,6 +157,25 @@ def test_refined_head_motion_with_gaps():
     assert np.isnan(stab[2, 3]).all() and np.abs(np.nan_to_num(stab - local)).max() < 1e-6
 
 
+def test_seen_least_squares_is_lstsq_on_the_seen_rows():
+    from rigbuild.retarget.seol.head_motion import _seen_least_squares
+
+    rng = np.random.default_rng(3)
+    R, P, G = 30, 8, 6
+    J = rng.normal(size=(R, P))
+    J[:3, 5] = 5.0
+    J[3:, 5] = 0.0  # unknown 5 is seen only through rows 0-2
+    seen = rng.random((G, R)) > 0.1
+    seen[1, :3] = False  # frame 1 does not observe unknown 5: the minimum-norm solution leaves it at 0
+    seen[2, 6:] = False  # frame 2 has fewer seen rows than unknowns
+    seen[2, :3] = True
+    res = np.where(seen, rng.normal(size=(G, R)), 0.0)
+    x = _seen_least_squares(J, res, seen)
+    for f in range(G):
+        np.testing.assert_allclose(x[f], np.linalg.lstsq(J[seen[f]], res[f, seen[f]], rcond=None)[0], atol=1e-10)
+    assert x[1, 5] == pytest.approx(0.0, abs=1e-12)
+
+
 def test_refined_head_motion_removes_expression_bias():
     rng = np.random.default_rng(4)
     M, K, F = 30, 5, 8

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
+from scipy.optimize import lsq_linear
 
 from rigbuild.errors import InputError
+from rigbuild.geometry.box_qp import solve_box_qp_batched
 from rigbuild.retarget.params import DEFAULT_ALPHA_PERFRAME, DEFAULT_WEIGHT_RANGE
 
 def _perframe_normal(B: np.ndarray, S: np.ndarray, visibility: np.ndarray | None):
@@ -47,8 +49,8 @@ def solve_perframe_prior(B: np.ndarray, S: np.ndarray, prior_P: np.ndarray, prio
 
     ``bounds`` (lo, hi) and ``sparsity`` (``+ sparsity 1^T w_t``, the L1 norm on weights >= 0): the same
     constraints as a bounded spacetime solve (:attr:`SeolSystem.bounds`, :attr:`SeolSystem.sparsity`), so
-    the two differ only by the movement matching; solved exactly per frame by bounded-variable least
-    squares on the Cholesky factor of ``G_t + alpha P``."""
+    the two differ only by the movement matching; solved exactly per frame as a box QP on ``G_t + alpha P``
+    (:func:`_bounded_perframe`)."""
     Gt, rhs = _perframe_normal(B, S, visibility)
     if bounds is None:
         if sparsity:
@@ -63,20 +65,20 @@ def solve_perframe_prior(B: np.ndarray, S: np.ndarray, prior_P: np.ndarray, prio
 
 def _bounded_perframe(G: np.ndarray, Gt: np.ndarray | None, rhs: np.ndarray, bounds: tuple[float, float],
                       tol: float = 1e-12) -> np.ndarray:
-    """``min_w w^T G_t w - 2 rhs_t^T w`` subject to ``lo <= w <= hi`` for every frame t: bounded-variable
-    least squares ``||C^T w - C^-1 rhs_t||`` with ``G_t = C C^T`` (same minimizer). G (K, K) shared or
-    Gt (F, K, K) per frame; rhs (F, K) -> (F, K)."""
-    from scipy.optimize import lsq_linear
-
+    """``min_w w^T G_t w - 2 rhs_t^T w`` subject to ``lo <= w <= hi`` for every frame t, exactly: every frame at
+    once by block principal pivoting (:func:`rigbuild.geometry.box_qp.solve_box_qp_batched`); a frame it leaves
+    unconverged is solved by bounded-variable least squares ``||C^T w - C^-1 rhs_t||`` with ``G_t = C C^T`` (the
+    same minimizer). G (K, K) shared or Gt (F, K, K) per frame; rhs (F, K) -> (F, K). A ridge of 1e-12 of the mean
+    diagonal keeps frames whose seen markers leave a shape unobserved positive definite."""
     lo, hi = float(bounds[0]), float(bounds[1])
-    K = G.shape[0]
+    F, K = rhs.shape
     eps = 1e-12 * max(np.trace(G) / K, 1e-12) * np.eye(K)
-    C = np.linalg.cholesky(G + eps)
-    out = np.empty((rhs.shape[0], K))
-    for f, b in enumerate(rhs):
-        Cf = C if Gt is None else np.linalg.cholesky(Gt[f] + eps)
-        r = scipy.linalg.solve_triangular(Cf, b, lower=True)
-        out[f] = lsq_linear(Cf.T, r, bounds=(lo, hi), method="bvls", tol=tol).x
+    H = np.broadcast_to(G + eps, (F, K, K)) if Gt is None else Gt + eps
+    out, converged = solve_box_qp_batched(H, -np.asarray(rhs, dtype=np.float64), lo, hi)
+    for f in np.flatnonzero(~converged):
+        C = np.linalg.cholesky(H[f])
+        r = scipy.linalg.solve_triangular(C, rhs[f], lower=True)
+        out[f] = lsq_linear(C.T, r, bounds=(lo, hi), method="bvls", tol=tol).x
     return out
 
 
@@ -84,9 +86,8 @@ def solve_perframe_range(B: np.ndarray, S: np.ndarray, bounds: tuple[float, floa
                          tol: float = 1e-12, visibility: np.ndarray | None = None) -> np.ndarray:
     """"Range PF": ``min ||B w_t - s_t||^2`` subject to ``lo <= w <= hi`` per frame (Bregler et al. 2002).
 
-    Exact bounded-variable least squares (scipy ``lsq_linear``, method ``bvls``) per frame on the
-    reduced K x K problem ``||C^T w - C^-1 B^T s_t||`` with ``B^T B = C C^T`` (same minimizer; with
-    ``visibility`` the per-frame ``B_vis^T B_vis``). B (3M, K), S (F, 3M) -> (F, K).
+    Exact per frame: the box QP on the K x K normal equations ``B^T B`` (with ``visibility`` the per-frame
+    ``B_vis^T B_vis``), every frame at once (:func:`_bounded_perframe`). B (3M, K), S (F, 3M) -> (F, K).
     """
     Gt, rhs_all = _perframe_normal(B, S, visibility)
     return _bounded_perframe(B.T @ B, Gt, rhs_all, bounds, tol)

@@ -109,13 +109,40 @@ def refine_head_motion(
         stab = np.einsum("fji,fmj->fmi", R, X - t[:, None, :])
         res = np.where(vis3, (stab - Y[None]).reshape(F, -1), 0.0) * sw
         sol = res @ pinv.T
-        for f in gappy:
-            sol[f] = np.linalg.lstsq(Jw[vis3[f]], res[f, vis3[f]], rcond=None)[0]
+        if gappy.size:
+            sol[gappy] = _seen_least_squares(Jw, res[gappy], vis3[gappy])
         Rd = Rotation.from_rotvec(sol[:, :3]).as_matrix()
         t = t + np.einsum("fij,fj->fi", R, sol[:, 3:6])
         R = R @ Rd
     stab = np.einsum("fji,fmj->fmi", R, X - t[:, None, :])
     return stab, R, t
+
+
+def _seen_least_squares(J: np.ndarray, res: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """Per frame ``argmin ||J_seen x - res_seen||`` over the rows ``seen`` (G, R) of J (R, P); res (G, R) is 0
+    where not seen. Normal equations for every frame at once (``J^T J`` less the unseen rows' part);
+    a frame whose seen rows leave an unknown (nearly) unobserved gets the minimum-norm least squares
+    (``lstsq``) instead. Returns (G, P)."""
+    G, P = res.shape[0], J.shape[1]
+    unseen = ~seen
+    n_unseen = unseen.sum(1)
+    order = np.argsort(seen, axis=1, kind="stable")[:, :int(n_unseen.max(initial=0))]  # unseen rows first
+    Ju = J[order] * (np.arange(order.shape[1])[None, :] < n_unseen[:, None])[..., None]  # (G, u, P), zero padded
+    N = J.T @ J - np.swapaxes(Ju, 1, 2) @ Ju
+    rhs = res @ J
+    d = np.diagonal(N, axis1=1, axis2=2)
+    ok = (d > 1e-9 * d.max(axis=1, keepdims=True)).all(axis=1) & (seen.sum(1) >= P)
+    out = np.empty((G, P))
+    if ok.any():
+        try:
+            c = np.linalg.cholesky(N[ok])
+            y = np.linalg.solve(c, rhs[ok][..., None])
+            out[ok] = np.linalg.solve(np.swapaxes(c, 1, 2), y)[..., 0]
+        except np.linalg.LinAlgError:  # not positive definite to working precision: every frame by lstsq
+            ok[:] = False
+    for f in np.flatnonzero(~ok):
+        out[f] = np.linalg.lstsq(J[seen[f]], res[f, seen[f]], rcond=None)[0]
+    return out
 
 
 def head_motion_about_pivot(R: np.ndarray, t: np.ndarray, pivot: np.ndarray) -> np.ndarray:
