@@ -4,10 +4,13 @@
 # characters.smk builds results/{session}/characters/{character}.npz; tracking writes
 # results/{session}/track/{sequence}/markers.npz and vertices.npz; rule take_markers (below) reads every sequence at
 # the take's own markers (params.retarget.take_markers). Params: config["params"]["retarget"]["ribera"]
-# (rigbuild/retarget/params.py RiberaParams). Method ribera_fit_actor_rig (RIBERA_ACTOR_RIG_METHOD) also reads the
-# personalized rig (personalize.smk), the take's marker map on it and the rig at the markers refined on the take
-# (rule actor_rig_weights, retarget_actor_rig.smk); the other methods' jobs do not depend on them.
-from rigbuild.retarget.methods import PIPELINE_METHODS, RIBERA_ACTOR_RIG_METHOD, RIBERA_METHODS
+# (rigbuild/retarget/params.py RiberaParams). The methods of RIBERA_RIG_METHODS also read a rig of the actor's
+# topology and the take's marker map on it: ribera_fit_actor_rig the personalized rig (personalize.smk), the map and
+# the rig at the markers refined on the take from rule actor_rig_weights (retarget_actor_rig.smk);
+# ribera_fit_template_rig the template rig at the take's markers on the tracked neutral (rule take_markers, the
+# template's topology). The other methods' jobs depend on neither.
+from rigbuild.retarget.methods import (PIPELINE_METHODS, RIBERA_ACTOR_RIG_METHOD, RIBERA_METHODS,
+                                       RIBERA_RIG_METHODS, RIBERA_TEMPLATE_RIG_METHOD)
 from rigbuild.retarget.methods import wildcard as _method_wildcard
 
 
@@ -34,19 +37,35 @@ def _retarget_neutral_frames(wc):
     return [int(seq.neutral_frame) - int(seq.start) for seq in session_spec(wc.session).rom]
 
 
-def _retarget_actor_rig(wc):
-    """Method ribera_fit_actor_rig: the personalized rig whose shapes at the markers are E_Align's guesses g_k
-    ([] for the other methods)."""
-    return [f"results/{wc.session}/personalize/rig.npz"] if wc.method == RIBERA_ACTOR_RIG_METHOD else []
+def _guess_rig(wc):
+    """The methods of RIBERA_RIG_METHODS: the spec of the rig whose shapes at the markers are E_Align's guesses g_k
+    (the personalized rig.npz or the template rig's spec, rule actor_rig_weights' source); "" for the others."""
+    source = RIBERA_RIG_METHODS.get(wc.method)
+    return rig_of_source(wc, source) if source else ""
 
 
-def actor_rig_take_file(wc, method, name):
-    """A file of the take's actor-rig job (rule actor_rig_weights): ``marker_map.json`` (the take's markers
-    placed on the personalized rig) or ``solve.npz`` (its rig at the markers, refined on the take), for the
-    actor-rig ``method`` of a rule; [] for the rule's other methods."""
-    if wc.method != method:
+def _guess_rig_files(wc):
+    """The files of :func:`_guess_rig` (so that a changed rig re-runs the job); [] for the other methods."""
+    return rig_source_files(_guess_rig(wc)) if wc.method in RIBERA_RIG_METHODS else []
+
+
+def _guess_rig_marker_map(wc):
+    """The take's marker map the guess rig is read at: ribera_fit_actor_rig's from rule actor_rig_weights (the
+    markers on the personalized rig), ribera_fit_template_rig's from rule take_markers (on the tracked neutral,
+    whose topology is the template rig's); [] for the other methods."""
+    if wc.method == RIBERA_TEMPLATE_RIG_METHOD:
+        return [f"results/{wc.session}/take_markers/{wc.performance}/marker_map.json"]
+    return actor_rig_take_file(wc, {RIBERA_ACTOR_RIG_METHOD: "actor_rig"}, "marker_map.json")
+
+
+def actor_rig_take_file(wc, rig_methods, name):
+    """A file of the take's actor-rig job (rule actor_rig_weights) of the rig a method of ``rig_methods``
+    ({method: source}) reads: ``marker_map.json`` (the take's markers placed on that rig) or ``solve.npz`` (its rig
+    at the markers, refined on the take); [] for the rule's other methods."""
+    source = rig_methods.get(wc.method)
+    if source is None:
         return []
-    return [f"results/{wc.session}/actor_rig/{wc.performance}/{name}"]
+    return [f"results/{wc.session}/{source}/{wc.performance}/{name}"]
 
 
 def retarget_metric_files(session):
@@ -96,9 +115,9 @@ rule retarget_ribera:
         performance=lambda wc: performance_file(wc.session, wc.performance),
         training=_retarget_rom_markers,
         rig="results/{session}/characters/{character}.npz",
-        actor_rig=_retarget_actor_rig,
-        marker_map=lambda wc: actor_rig_take_file(wc, RIBERA_ACTOR_RIG_METHOD, "marker_map.json"),
-        actor_solve=lambda wc: actor_rig_take_file(wc, RIBERA_ACTOR_RIG_METHOD, "solve.npz"),
+        guess_rig=_guess_rig_files,
+        marker_map=_guess_rig_marker_map,
+        actor_solve=lambda wc: actor_rig_take_file(wc, {RIBERA_ACTOR_RIG_METHOD: "actor_rig"}, "solve.npz"),
     output:
         weights="results/{session}/retarget/{method}/{performance}/{character}/weights.csv",
         weights_json="results/{session}/retarget/{method}/{performance}/{character}/weights.json",
@@ -108,6 +127,7 @@ rule retarget_ribera:
         metrics="results/{session}/retarget/{method}/{performance}/{character}/retarget_metrics.json",
     params:
         ribera=lambda wc: config["params"]["retarget"].get("ribera", {}),
+        guess_rig=_guess_rig,
         method=lambda wc: wc.method,
         character=lambda wc: wc.character,
         performance=lambda wc: wc.performance,

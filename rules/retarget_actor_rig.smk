@@ -15,12 +15,17 @@ def actor_rig_metric_files(session):
             for source in ACTOR_RIG_SOURCES]
 
 
-def _actor_rig_spec(wc):
-    """The rig an actor_rig_weights job reads: the personalized rig, or (the baseline without personalization)
-    the template rig the personalization started from (rules/personalize.smk)."""
-    if wc.source == "actor_rig":
+def rig_of_source(wc, source):
+    """The rig of an actor_rig_weights ``source`` (ACTOR_RIG_SOURCES): the personalized rig, or (the baseline
+    without personalization) the template rig the personalization started from (rules/personalize.smk)."""
+    if source == "actor_rig":
         return f"results/{wc.session}/personalize/rig.npz"
     return _personalize_template_rig(wc)
+
+
+def _actor_rig_spec(wc):
+    """The rig an actor_rig_weights job reads (:func:`rig_of_source` of its source)."""
+    return rig_of_source(wc, wc.source)
 
 
 rule actor_rig_weights:

@@ -7,7 +7,7 @@
 # personalized rig (personalize.smk), the take's marker map on it and the rig at the markers refined on the take
 # (rule actor_rig_weights, retarget_actor_rig.smk): its source neutral and expression space
 # (rigbuild/retarget/seol/actor_space.py); the seol jobs do not depend on them.
-from rigbuild.retarget.methods import SEOL_ACTOR_RIG_METHOD, SEOL_METHODS
+from rigbuild.retarget.methods import SEOL_ACTOR_RIG_METHOD, SEOL_METHODS, SEOL_RIG_METHODS
 
 
 def _seol_actor_rig(wc):
@@ -24,8 +24,8 @@ rule retarget_seol:
         rig="results/{session}/characters/{character}.npz",
         neutral=_retarget_rom_markers,  # tracked ROM markers: the actor's neutral (mean of the neutral frames)
         actor_rig=_seol_actor_rig,
-        marker_map=lambda wc: actor_rig_take_file(wc, SEOL_ACTOR_RIG_METHOD, "marker_map.json"),
-        actor_solve=lambda wc: actor_rig_take_file(wc, SEOL_ACTOR_RIG_METHOD, "solve.npz"),
+        marker_map=lambda wc: actor_rig_take_file(wc, SEOL_RIG_METHODS, "marker_map.json"),
+        actor_solve=lambda wc: actor_rig_take_file(wc, SEOL_RIG_METHODS, "solve.npz"),
     output:
         weights="results/{session}/retarget/{method}/{performance}/{character}/weights.csv",
         weights_json="results/{session}/retarget/{method}/{performance}/{character}/weights.json",

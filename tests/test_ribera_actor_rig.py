@@ -17,7 +17,7 @@ from dry_run import jobs_after_touching_the_personalized_rig
 from rigbuild.errors import InputError
 from rigbuild.retarget import ribera as rb
 from rigbuild.retarget.actor_rig import MarkerMap, sample_rig_at_markers, vertex_marker_map
-from rigbuild.retarget.methods import METHOD_KEYS, RIBERA_ACTOR_RIG_METHOD, RIBERA_METHODS
+from rigbuild.retarget.methods import METHOD_KEYS, RIBERA_ACTOR_RIG_METHOD, RIBERA_METHODS, RIBERA_TEMPLATE_RIG_METHOD
 from rigbuild.rig import Rig
 
 
@@ -137,8 +137,37 @@ def test_transfer_starts_from_and_keeps_the_personalized_rig():
     plain = prepare_model(ts, character, names, character.marker_vertices, "ribera_fit", tp,
                           rb.RetargetParams(bounds=(0.0, 1.0)))
     assert np.abs(plain.dp - truth).max() > 100 * max(err, 1e-6)
-    with pytest.raises(InputError, match="needs the personalized rig"):
+    with pytest.raises(InputError, match="needs its rig at the markers"):
         prepare_model(ts, character, names, character.marker_vertices, RIBERA_ACTOR_RIG_METHOD, tp)
+
+
+def test_template_rig_guesses_read_the_rom_whatever_the_character_looks_like():
+    """ribera_fit_template_rig: the guesses come from the template rig (the actor's semantics, not its amplitude),
+    so a character whose shapes move other regions in other directions (a sculpted one) does not decide how the ROM
+    is read: the transfer ends near the actor's shapes, where ribera_fit from that character's shapes does not."""
+    from rigbuild.retarget.run import make_training_set, prepare_model
+
+    template, actor = _actor_and_character(1.5)
+    V, faces = template.neutral, template.faces
+    sculpted = Rig(V, np.roll(template.deltas, 1, axis=0)[..., [2, 0, 1]], list(template.shape_names), faces,
+                   name="sculpted", marker_names=list(template.marker_names), marker_vertices=template.marker_vertices)
+    R, t = Rotation.from_rotvec([0.1, 0.4, -0.2]).as_matrix(), np.array([5.0, 80.0, 900.0])
+    names = list(template.marker_names)
+    ts = make_training_set([_rom(actor, R, t)], [names], [0])
+    mmap = vertex_marker_map(names, template.marker_vertices, faces)
+    b0, D = sample_rig_at_markers(V, template.deltas, faces, mmap)
+    tp = rb.TransferParams(guess="rbf", fit_lambda_cm=0.0, fit_mu=0.0)
+    rp = rb.RetargetParams(bounds=(0.0, 1.0))
+    truth = actor.deltas[:, actor.marker_vertices] @ R.T
+    model = prepare_model(ts, sculpted, names, sculpted.marker_vertices, RIBERA_TEMPLATE_RIG_METHOD, tp, rp,
+                          actor_rig=rb.RigAtMarkers(b0, D, names, list(template.shape_names)))
+    np.testing.assert_allclose(model.transfer.dg, template.deltas[:, template.marker_vertices] @ R.T, atol=1e-8)
+    assert model.transfer.info["rig_guess_shapes"] == 4
+    err = np.abs(model.dp - truth).max()
+    plain = prepare_model(ts, sculpted, names, sculpted.marker_vertices, "ribera_fit", tp, rp)
+    err_plain = np.abs(plain.dp - truth).max()
+    guess_err = np.abs(model.transfer.dg - truth).max()  # the template moves 5 mm where the actor moves 7.5
+    assert err < 0.6 * guess_err and err_plain > 5 * err, (err, guess_err, err_plain)
 
 
 class _Named(dict):
@@ -186,9 +215,10 @@ def test_entry_point_reads_the_personalized_rig_and_the_marker_map(tmp_path):
         return run_ribera(sm.input.performance, sm.input.training, sm.input.rig, RIBERA_ACTOR_RIG_METHOD, "grid",
                           "perf00", sm.params.ribera, [0], **out, **inputs)
 
-    with pytest.raises(InputError, match="needs the personalized rig and the take's marker map"):
+    with pytest.raises(InputError, match="needs its rig and the take's marker map on it"):
         direct()
-    sm = job(actor_rig=[str(tmp_path / "rig.npz")], marker_map=[str(tmp_path / "marker_map.json")])
+    sm = job(guess_rig=[str(tmp_path / "rig.npz")], marker_map=[str(tmp_path / "marker_map.json")])
+    sm.params["guess_rig"] = str(tmp_path / "rig.npz")
     runpy.run_path("scripts/retarget.py", init_globals={"snakemake": sm})
     w, _, _ = read_weight_curves_csv(out["weights"])
     # the job is the library's ribera_fit_actor_rig with the rig at the map's markers (in the rig's frame)

@@ -178,7 +178,7 @@ def test_stage_reads_the_personalized_rig_and_the_marker_map(tmp_path):
             params=_Named(seol=seol, method=method, character="dome", performance="perf00", neutral_frames=[0]),
             log=[str(tmp_path / f"{method}.log")], rule="retarget_seol", threads=1)
 
-    with pytest.raises(InputError, match="needs the personalized rig and the take's marker map"):
+    with pytest.raises(InputError, match="needs its rig and the take.s marker map on it"):
         run_seol(str(tmp_path / "perf.npz"), str(tmp_path / "char.npz"), [str(tmp_path / "rom.npz")], [0], "dome",
                  "perf00", seol, method=SEOL_ACTOR_RIG_METHOD, **outputs("x"))
     runpy.run_path("scripts/retarget_seol.py", init_globals={"snakemake": job(

@@ -108,6 +108,7 @@ STAGE_BOUNDS = {
     "personalization.residual_reduction_weighted": (">", 0.0),
     "retarget.ribera_fit.template.mean_correlation": (">", 0.5),
     "retarget.ribera_fit.template.weight_mae": ("<", 0.5),
+    "retarget.ribera_fit_template_rig.template.mean_correlation": (">", 0.5),
     "retarget.seol.template.mean_correlation": (">", 0.5),
     "retarget.seol.template.weight_mae": ("<", 0.5),
     "retarget.actor_rig_weights.mean_correlation": (">", 0.5),

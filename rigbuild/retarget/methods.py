@@ -15,18 +15,29 @@ from typing import Any, Mapping
 #: from the character; its rule ``retarget_ribera`` jobs also read the personalized rig and the take's
 #: marker map (rule ``actor_rig_weights``)
 RIBERA_ACTOR_RIG_METHOD = "ribera_fit_actor_rig"
+#: the same with the guesses from the template rig the personalization starts from (the tracking's topology and the
+#: actor's shape names) at the take's markers on the tracked neutral (rule ``take_markers``): the character's shapes
+#: then enter only the geometric prior, so a character whose shapes differ from the actor's (sculpted, another
+#: topology) does not decide how the range of motion is read; its jobs do not read the personalization
+RIBERA_TEMPLATE_RIG_METHOD = "ribera_fit_template_rig"
+#: Ribera methods whose guesses g_k come from a rig of the actor's topology -> that rig (the ``actor_rig_weights``
+#: source of the same name, :data:`ACTOR_RIG_SOURCES`)
+RIBERA_RIG_METHODS = {RIBERA_ACTOR_RIG_METHOD: "actor_rig", RIBERA_TEMPLATE_RIG_METHOD: "template_rig"}
 #: methods of rule ``retarget_ribera`` (Ribera et al. 2017 as written with the paper's constants, its
-#: activation-aware and ROM-fit E_Match options, the ROM-fit option from the personalized rig's guesses, the
-#: RBF-transfer and deformation-transfer baselines)
-RIBERA_METHODS = ["ribera", "ribera_activation", "ribera_fit", RIBERA_ACTOR_RIG_METHOD, "rbf", "deformation"]
+#: activation-aware and ROM-fit E_Match options, the ROM-fit option from the personalized and from the template
+#: rig's guesses, the RBF-transfer and deformation-transfer baselines)
+RIBERA_METHODS = ["ribera", "ribera_activation", "ribera_fit", RIBERA_ACTOR_RIG_METHOD, RIBERA_TEMPLATE_RIG_METHOD,
+                  "rbf", "deformation"]
 #: the methods that run the ROM-fit E_Match (``TransferParams.match = "fit"``, guesses from ``fit_guess``)
-RIBERA_FIT_METHODS = ("ribera_fit", RIBERA_ACTOR_RIG_METHOD)
+RIBERA_FIT_METHODS = ("ribera_fit", RIBERA_ACTOR_RIG_METHOD, RIBERA_TEMPLATE_RIG_METHOD)
 #: the method of rule ``retarget_seol`` (Seol et al. 2012 spacetime expression cloning)
 SEOL_METHOD = "seol"
 #: the Seol variant whose source side (the actor's neutral and expression space at the markers, hence the scale
 #: map shape by shape) comes from the personalized rig (issue 26, :mod:`rigbuild.retarget.seol.actor_space`); its
 #: rule ``retarget_seol`` jobs also read the personalized rig and the take's marker map (rule ``actor_rig_weights``)
 SEOL_ACTOR_RIG_METHOD = "seol_actor_rig"
+#: Seol methods whose source side comes from a rig -> the ``actor_rig_weights`` source placing the markers on it
+SEOL_RIG_METHODS = {SEOL_ACTOR_RIG_METHOD: "actor_rig"}
 #: methods of rule ``retarget_seol``
 SEOL_METHODS = [SEOL_METHOD, SEOL_ACTOR_RIG_METHOD]
 #: the method of rule ``retarget_semantic``: the actor weights solved from the personalized rig
@@ -38,7 +49,7 @@ ACTOR_RIG_SOURCES = ["actor_rig", "template_rig"]
 #: every method run per (performance, character), in report order
 PIPELINE_METHODS = RIBERA_METHODS + SEOL_METHODS + [SEMANTIC_METHOD]
 #: the Ribera variants one of which is ``params.retarget.ribera.primary``
-RIBERA_VARIANTS = ("ribera", "ribera_activation", "ribera_fit", RIBERA_ACTOR_RIG_METHOD)
+RIBERA_VARIANTS = ("ribera", "ribera_activation", "ribera_fit", RIBERA_ACTOR_RIG_METHOD, RIBERA_TEMPLATE_RIG_METHOD)
 #: the Ribera variant whose numbers are also reported as ``retarget.ribera.*`` (the default of ``primary``)
 PRIMARY_RIBERA_METHOD = "ribera_fit"
 #: the metric prefix under which the primary variant is reported a second time
@@ -47,7 +58,8 @@ PRIMARY_PREFIX = "ribera"
 #: method -> metric prefix of its own numbers (``retarget.<prefix>.<character>.*``); ``ribera`` runs the paper
 #: with its own constants (:meth:`rigbuild.retarget.params.RiberaParams.for_method`): ``ribera_paper``
 METHOD_KEYS = {"ribera": "ribera_paper", "ribera_activation": "ribera_activation", "ribera_fit": "ribera_fit",
-               RIBERA_ACTOR_RIG_METHOD: "ribera_fit_actor_rig", "rbf": "rbf_baseline",
+               RIBERA_ACTOR_RIG_METHOD: "ribera_fit_actor_rig", RIBERA_TEMPLATE_RIG_METHOD: "ribera_fit_template_rig",
+               "rbf": "rbf_baseline",
                "deformation": "deformation_baseline", "seol": "seol", SEOL_ACTOR_RIG_METHOD: "seol_actor_rig",
                "semantic_actor_rig": "semantic_actor_rig"}
 #: Seol job: result (spacetime solution or sec. 7 baseline) -> metric prefix

@@ -159,8 +159,8 @@ class RiberaParams:
 
     alpha, beta, r, ceg_reference, fit_alpha, fit_lambda_cm : :class:`TransferParams` (lambda for cm).
     guess : g_k of E_Mesh for ``ribera`` / ``ribera_activation`` (``rbf``, sec. 4.4, or ``deformation``);
-    fit_guess : g_k for ``ribera_fit`` (and, for the character shapes the personalized rig lacks, for
-        ``ribera_fit_actor_rig``, whose other g_k are the personalized rig sampled at the markers).
+    fit_guess : g_k for ``ribera_fit`` (and, for the character shapes the rig lacks, for ``ribera_fit_actor_rig``
+        and ``ribera_fit_template_rig``, whose other g_k are the personalized / template rig at the markers).
     rigid, mu, lambda_cm, bounds : :class:`RetargetParams` (``bounds`` [lo, hi] or null).
     allow_empty_frames : frames with fewer than 3 visible markers get interpolated weights (else an error).
     preview_frames : frames drawn in preview.png (the most active ones).
@@ -217,8 +217,8 @@ class RiberaParams:
                        take_refine_iterations=0)
 
     def transfer_params(self, method: str) -> TransferParams:
-        """The transfer parameters of ``method`` (``ribera_fit`` and ``ribera_fit_actor_rig`` take ``fit_guess``,
-        the latter for the character shapes the personalized rig lacks; ``ribera`` the paper's, :meth:`for_method`)."""
+        """The transfer parameters of ``method`` (the ROM-fit methods take ``fit_guess``, the rig ones for the
+        character shapes their rig lacks; ``ribera`` the paper's, :meth:`for_method`)."""
         q = self.for_method(method)
         return TransferParams(alpha=float(q.alpha), beta=float(q.beta), r=float(q.r),
                               ceg_reference=str(q.ceg_reference),

@@ -25,7 +25,7 @@ from rigbuild.io.metrics import write_metrics_fragment
 from rigbuild.io.rigs import read_rig_npz
 from rigbuild.params import as_dict
 from rigbuild.retarget.common import check_marker_overlap
-from rigbuild.retarget.methods import (METHOD_KEYS, RIBERA_ACTOR_RIG_METHOD, RIBERA_METHODS, method_metrics,
+from rigbuild.retarget.methods import (METHOD_KEYS, RIBERA_METHODS, RIBERA_RIG_METHODS, method_metrics,
                                        seol_result_metrics)
 from rigbuild.retarget.params import ribera_from_config, seol_from_config
 
@@ -176,15 +176,16 @@ def tracked_takes_on_map(files: Sequence[Path], rig_path: Path, marker_map_path:
             for markers, _ in tracked_sequences_on_map(files, faces, mmap)]
 
 
-def actor_rig_for_method(method: str, actor_rig_method: str, rule: str, actor_rig: str | None,
+def actor_rig_for_method(method: str, rig_methods: Sequence[str], rule: str, actor_rig: str | None,
                          marker_map: str | None, actor_solve: str | None = None):
-    """The personalized rig at the take's markers (:func:`load_rig_at_markers`) when ``method`` is the rule's
-    actor-rig method (InputError naming the rule when its inputs are missing); None for the other methods."""
-    if method != actor_rig_method:
+    """The rig (personalized ``rig.npz`` or the template rig's spec) at the take's markers
+    (:func:`load_rig_at_markers`) when ``method`` is one of the rule's ``rig_methods`` (InputError naming the rule
+    when its inputs are missing); None for the other methods."""
+    if method not in rig_methods:
         return None
     if not actor_rig or not marker_map:
-        raise InputError(f"method '{method}' needs the personalized rig and the take's marker map", path="rules",
-                         fix=f"give rule {rule} the inputs actor_rig and marker_map for this method")
+        raise InputError(f"method '{method}' needs its rig and the take's marker map on it", path="rules",
+                         fix=f"give rule {rule} the rig (params guess_rig) and the input marker_map for this method")
     return load_rig_at_markers(actor_rig, marker_map, actor_solve)
 
 
@@ -210,8 +211,9 @@ def refined_rig_at_markers(solve_path: Path, b0: np.ndarray, D: np.ndarray,
 
 
 def load_rig_at_markers(rig_path: Path, marker_map_path: Path, solve_path: Path | None = None):
-    """The personalized rig (``rig.npz``, mm) sampled at a take's markers placed on it (``marker_map.json`` of
-    rule ``actor_rig_weights``): :class:`~rigbuild.retarget.ribera.RigAtMarkers` in the rig's frame; with the
+    """The personalized rig (``rig.npz``; or any rig spec of :func:`rigbuild.io.rigs.load_rig`, e.g. the template
+    rig's; mm) sampled at a take's markers placed on it (``marker_map.json`` of rule ``actor_rig_weights``):
+    :class:`~rigbuild.retarget.ribera.RigAtMarkers` in the rig's frame; with the
     same job's ``solve.npz``, the rig at the markers refined on the take (:func:`refined_rig_at_markers`)."""
     import json
 
@@ -231,7 +233,7 @@ def load_rig_at_markers(rig_path: Path, marker_map_path: Path, solve_path: Path 
     mmap = MarkerMap.from_json(doc["markers"], path=marker_map_path)
     n_faces = int(np.asarray(rig.faces).shape[0])
     if mmap.face_ids.size and (mmap.face_ids.min() < 0 or mmap.face_ids.max() >= n_faces):
-        raise InputError(f"the marker map names triangles outside the personalized rig's {n_faces}",
+        raise InputError(f"the marker map names triangles outside the rig's {n_faces}",
                          path=marker_map_path, fix=f"place the markers on {rig_path} (rule actor_rig_weights)")
     b0, D = sample_rig_at_markers(rig.neutral, rig.deltas, rig.faces, mmap)
     if solve_path is not None:
@@ -252,8 +254,9 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
     ``marker_names``); rig_path : character .npz with its marker map; ribera : ``params.retarget.ribera``;
     neutral_frames : the neutral row of each training file; method ``ribera`` runs with the paper's constants
     whatever ``ribera`` says (:meth:`~rigbuild.retarget.params.RiberaParams.for_method`; the weight files'
-    ``params`` are the ones it ran with); actor_rig, marker_map : method ``ribera_fit_actor_rig`` only, the
-    personalized ``rig.npz`` and the take's ``marker_map.json`` on it (its guesses g_k,
+    ``params`` are the ones it ran with); actor_rig, marker_map : methods of
+    :data:`~rigbuild.retarget.methods.RIBERA_RIG_METHODS` only, the personalized ``rig.npz`` (or the template rig's
+    spec) and the take's ``marker_map.json`` on it (its guesses g_k,
     :func:`load_rig_at_markers`; actor_solve: the same job's ``solve.npz``, whose rig at the markers refined on the
     take replaces them), each a path or a list of at most one (:func:`one_input`); with them,
     ``training`` may be the tracked ``vertices.npz`` files, sampled at the marker map
@@ -267,7 +270,7 @@ def run_ribera(performance: Path, training: Sequence[Path], rig_path: Path, meth
         raise InputError(f"unknown method '{method}'", path="config", fix=f"use one of {RIBERA_METHODS}")
     p = p.for_method(method)  # ``ribera``: the paper's constants whatever the config says
     actor_rig, marker_map = one_input(actor_rig), one_input(marker_map)
-    rig_at_markers = actor_rig_for_method(method, RIBERA_ACTOR_RIG_METHOD, "retarget_ribera", actor_rig, marker_map,
+    rig_at_markers = actor_rig_for_method(method, RIBERA_RIG_METHODS, "retarget_ribera", actor_rig, marker_map,
                                           one_input(actor_solve))
     take = read_markers(performance)
     files = list(training)
@@ -357,13 +360,13 @@ def run_seol(performance: Path, rig_path: Path, neutral: Sequence[Path] | None, 
     from rigbuild.retarget.seol import retarget_seol
     from rigbuild.retarget.seol_outputs import plot_velocity_error
 
-    from rigbuild.retarget.methods import SEOL_ACTOR_RIG_METHOD, SEOL_METHODS
+    from rigbuild.retarget.methods import SEOL_METHODS, SEOL_RIG_METHODS
 
     if method not in SEOL_METHODS:
         raise InputError(f"unknown method '{method}'", path="rules", fix=f"use one of {SEOL_METHODS}")
     p = seol_from_config(seol).for_method(method)
     actor_rig, marker_map = one_input(actor_rig), one_input(marker_map)
-    rig_at_markers = actor_rig_for_method(method, SEOL_ACTOR_RIG_METHOD, "retarget_seol", actor_rig, marker_map,
+    rig_at_markers = actor_rig_for_method(method, SEOL_RIG_METHODS, "retarget_seol", actor_rig, marker_map,
                                           one_input(actor_solve))
     t0 = time.perf_counter()
     take = read_markers(performance)

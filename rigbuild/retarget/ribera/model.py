@@ -9,7 +9,7 @@ import numpy as np
 
 from rigbuild.errors import InputError
 from rigbuild.retarget.common import stabilize
-from rigbuild.retarget.methods import RIBERA_ACTOR_RIG_METHOD, RIBERA_FIT_METHODS, RIBERA_METHODS
+from rigbuild.retarget.methods import RIBERA_FIT_METHODS, RIBERA_METHODS, RIBERA_RIG_METHODS
 from rigbuild.retarget.params import RetargetParams, TransferParams
 from rigbuild.retarget.ribera.guesses import RigMarkerGuesses, combine_guesses, deformation_guesses, rbf_transfer
 from rigbuild.retarget.plausible import antagonist_pairs
@@ -91,15 +91,16 @@ def build_model(
     method : ``"ribera"`` (section 4 transfer as written), ``"ribera_activation"`` (the activation-aware
         E_Match option, see :func:`transfer_blendshapes`), ``"ribera_fit"`` (the ROM-fit E_Match option,
         :func:`fit_match_transfer`), ``"ribera_fit_actor_rig"`` (``ribera_fit`` with the guesses g_k, E_Mesh's
-        reference, from the actor's personalized rig: ``rig_guesses``),
-        ``"rbf"`` (baseline: the thin-plate RBF guesses ``g_k`` used directly), ``"deformation"`` (the
+        reference, from the actor's personalized rig: ``rig_guesses``), ``"ribera_fit_template_rig"`` (the same
+        from the template rig the personalization starts from), ``"rbf"`` (baseline: the thin-plate RBF guesses ``g_k`` used directly), ``"deformation"`` (the
         deformation-transfer guesses of :func:`deformation_guesses` used directly).
     segment_starts : first frame of each concatenated training sequence.
     transfer_params.guess : g_k of ``"ribera"`` / ``"ribera_activation"`` (``"rbf"`` as in the paper, or
         ``"deformation"``).
 
     workers : processes for the deformation-transfer guesses (the job's threads; same result).
-    rig_guesses : method ``"ribera_fit_actor_rig"`` only: the personalized rig at the markers in ``a0``'s frame
+    rig_guesses : methods ``"ribera_fit_actor_rig"`` / ``"ribera_fit_template_rig"`` only: the personalized /
+        template rig at the markers in ``a0``'s frame
         (:func:`rigbuild.retarget.ribera.guesses.rig_marker_guesses`, the character's shape order); g_k of a
         shape and marker it covers is the rig's, the others keep the ``transfer_params.guess`` guess. Everything
         ``ribera_fit`` derives from g_k (E_Mesh, the transfer's starting point and Tikhonov reference, the
@@ -122,10 +123,10 @@ def build_model(
     if tp.guess not in ("rbf", "deformation"):
         raise InputError(f"unknown initial guess '{tp.guess}'", fix="use rbf or deformation")
     use_dt = method == "deformation" or (method != "rbf" and tp.guess == "deformation")
-    if method == RIBERA_ACTOR_RIG_METHOD:
+    if method in RIBERA_RIG_METHODS:
         if rig_guesses is None:
-            raise InputError(f"method '{method}' needs the personalized rig at the markers (rig_guesses)",
-                             fix="give the job the personalized rig and the take's marker map")
+            raise InputError(f"method '{method}' needs its rig at the markers (rig_guesses)",
+                             fix="give the job the rig and the take's marker map on it")
         if rig_guesses.dg.shape != ds.shape:
             raise InputError(f"rig guesses {rig_guesses.dg.shape} do not match the character's {ds.shape}")
         covered = bool(rig_guesses.shapes.all() and rig_guesses.markers.all())
@@ -151,7 +152,7 @@ def build_model(
         transfer = transfer_blendshapes(s0, ds, a0, da, tp, uv=uv, contact_pairs=contact_pairs,
                                         segment_starts=segment_starts, dg=dg, prior=Q)
         dp = transfer.dp
-        if rig_guesses is not None and method == RIBERA_ACTOR_RIG_METHOD:
+        if rig_guesses is not None and method in RIBERA_RIG_METHODS:
             transfer.info["rig_guess_shapes"] = int(rig_guesses.shapes.sum())
             transfer.info["rig_guess_markers"] = int(rig_guesses.markers.sum())
             transfer.info["rig_alignment_rms_mm"] = float(rig_guesses.alignment_rms_mm)
