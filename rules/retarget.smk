@@ -45,8 +45,12 @@ def _guess_rig(wc):
 
 
 def _guess_rig_files(wc):
-    """The files of :func:`_guess_rig` (so that a changed rig re-runs the job); [] for the other methods."""
-    return rig_source_files(_guess_rig(wc)) if wc.method in RIBERA_RIG_METHODS else []
+    """The files of :func:`_guess_rig` (so that a changed rig re-runs the job): the personalized rig.npz (made by
+    rule personalize), the template rig's source files; [] for the other methods."""
+    source = RIBERA_RIG_METHODS.get(wc.method)
+    if source is None:
+        return []
+    return [_guess_rig(wc)] if source == "actor_rig" else rig_source_files(_guess_rig(wc))
 
 
 def _guess_rig_marker_map(wc):
