@@ -210,6 +210,24 @@ def test_retargeter_exact_recovery_with_gaps():
     np.testing.assert_allclose(rt.solve_frame(da[7]), W[7], atol=1e-10)
 
 
+@pytest.mark.parametrize("frames", [1, 12])
+def test_retargeter_holds_a_shape_that_moves_no_marker_at_zero(frames):
+    """A shape whose blendshape is zero at every marker, with no prior on it (mu 0): its normal matrix row is
+    zero (the ROM-fit transfer's inner solves meet this when a rig's guess moves none of the markers); the solve
+    keeps it at its lower bound and the others at the exact minimizer (the data term of the shapes that do move)."""
+    P, W, da = _random_problem(1, F=frames)
+    P = P.copy()
+    P[2] = 0.0
+    W = W.copy()
+    W[:, 2] = 0.0
+    Pm = P.transpose(1, 2, 0).reshape(-1, P.shape[0])
+    da = (W @ Pm.T).reshape(frames, -1, 3)
+    prm = rb.RetargetParams(mu=0.0, lambda_cm=0.0, bounds=(0.0, 1.0))
+    w = rb.RiberaRetargeter(P, np.zeros((6, 6)), prm).solve(da)
+    assert np.all(w[:, 2] == 0.0)
+    np.testing.assert_allclose(w, np.clip(W, 0.0, 1.0), atol=1e-6)
+
+
 def test_retargeter_box_qp_matches_reference_and_l1_irls():
     from scipy.optimize import minimize
 

@@ -104,7 +104,11 @@ class RiberaRetargeter:
             G = np.linalg.solve(JtJ + 1e-12 * np.trace(JtJ) * np.eye(6), PtJ.T).T  # (K, 6)
             PtP = PtP - G @ PtJ.T
             PtP = 0.5 * (PtP + PtP.T)
-        return 2.0 * PtP / n + 2.0 * self.params.mu * self.Q, G
+        A = 2.0 * PtP / n + 2.0 * self.params.mu * self.Q
+        # a shape that moves none of the visible markers (and no prior) has no curvature: a ridge of 1e-12 of the
+        # mean diagonal keeps A positive definite, and the L1 term then holds that shape at its lower bound
+        A[np.diag_indices(self.K)] += 1e-12 * max(float(np.trace(A)) / self.K, 1e-300)
+        return A, G
 
     def _rhs(self, da: np.ndarray, vis: np.ndarray, G: np.ndarray | None = None) -> np.ndarray:
         """(F, K) ``(2/M_f) P^T da_f`` over visible markers (minus ``G_f J^T da_f`` for the joint rigid fit;
