@@ -335,9 +335,9 @@ def test_joint_rigid_fit_is_exact_where_a_neutral_fit_absorbs_expression():
     np.testing.assert_allclose(rtb.solve(obs), W, atol=1e-7)
 
 
-def test_solve_free_matches_the_masked_full_system():
-    """The reduced free-variable solve equals the (K, K) masked system it replaces (all-free, none-free and
-    mixed rows)."""
+def test_solve_free_matches_each_rows_own_free_system():
+    """The batched free-variable solve equals each row's own ``A_SS w_S = b_S - A_SN w_N`` (all-free, none-free
+    and mixed rows), batched and one row at a time."""
     rng = np.random.default_rng(11)
     F, K = 7, 9
     X = rng.normal(size=(F, K, K))
@@ -348,9 +348,14 @@ def test_solve_free_matches_the_masked_full_system():
     free[1] = False
     fixed = np.where(rng.uniform(size=(F, K)) > 0.5, 1.0, 0.0)
     w = rb._solve_free(A, b, free, fixed)
-    wf = np.where(free, 0.0, fixed)
-    ref = np.linalg.solve(rb._masked_system(A, free), np.where(free, b - (A @ wf[..., None])[..., 0], wf)[..., None])[..., 0]
+    ref = fixed.copy()
+    for f in range(F):
+        s, n = np.flatnonzero(free[f]), np.flatnonzero(~free[f])
+        ref[f, s] = np.linalg.solve(A[f][np.ix_(s, s)], b[f, s] - A[f][np.ix_(s, n)] @ fixed[f, n])
     np.testing.assert_allclose(w, ref, atol=1e-12)
+    for f in range(F):
+        np.testing.assert_allclose(rb._solve_free(A[f:f + 1], b[f:f + 1], free[f:f + 1], fixed[f:f + 1])[0], ref[f],
+                                   atol=1e-12)
     np.testing.assert_array_equal(w[~free], fixed[~free])
     assert np.abs(w[0] - np.linalg.solve(A[0], b[0])).max() < 1e-12
 

@@ -13,10 +13,10 @@ from __future__ import annotations
 import numpy as np
 
 
-def _solve_free(H: np.ndarray, rhs: np.ndarray, free: np.ndarray) -> np.ndarray:
-    """(B, K): ``x[free] = H[free, free]^-1 rhs[free]`` per item, 0 elsewhere. The free variables of each item are
-    gathered into the leading rows of a (B, n, n) system (n: the most free variables of any item, identity
-    padding), so a batch of sparse solutions costs n^3, not K^3, per item."""
+def solve_free_subsystems(H: np.ndarray, rhs: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """(B, K): ``x[free] = H[free, free]^-1 rhs[free]`` per item, 0 elsewhere; H (B, K, K), rhs (B, K), free (B, K)
+    bool. The free variables of each item are gathered into the leading rows of a (B, n, n) system (n: the most
+    free variables of any item, identity padding), so a batch of sparse solutions costs n^3, not K^3, per item."""
     B, K = rhs.shape
     nf = free.sum(1)
     n = int(nf.max(initial=0))
@@ -68,7 +68,7 @@ def solve_box_qp_batched(H: np.ndarray, f: np.ndarray, lo: float = 0.0, hi: floa
         xfix = np.where(at_hi[todo], hi, lo).astype(np.float64)
         xfix[free] = 0.0
         rhs = -(fs + np.einsum("bkl,bl->bk", Hs, xfix))
-        xs = xfix + _solve_free(Hs, rhs, free)
+        xs = xfix + solve_free_subsystems(Hs, rhs, free)
         g = np.einsum("bkl,bl->bk", Hs, xs) + fs
         t = tol[todo][:, None]
         bad_lo = free & (xs < lo - 1e-12)

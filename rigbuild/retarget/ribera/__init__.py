@@ -89,7 +89,7 @@ from rigbuild.retarget.ribera.align_terms import (  # noqa: F401
     match_terms,
     soft_masks,
 )
-from rigbuild.retarget.ribera.bounded import _masked_system, _solve_free  # noqa: F401
+from rigbuild.retarget.ribera.bounded import _solve_free  # noqa: F401
 from rigbuild.retarget.ribera.guesses import (  # noqa: F401
     RigAtMarkers,
     RigMarkerGuesses,
