@@ -340,8 +340,8 @@ def _bounded(system: SeolSystem, mask: np.ndarray, vals: np.ndarray, linear: np.
     W, passes = system.solve_bounded(mask, vals, max_iterations=BOUNDED_MAX_PASSES, linear=linear)
     if passes > BOUNDED_MAX_PASSES:
         logging.getLogger("rigbuild.retarget.seol").warning(
-            "bounded spacetime solve: no KKT point after %d active-set passes; weights clipped to %s",
-            BOUNDED_MAX_PASSES, list(system.bounds))
+            "bounded spacetime solve: no exact KKT point after %d active-set passes; the interior-point weights "
+            "(within %s, tolerance 1e-10) are used", BOUNDED_MAX_PASSES, list(system.bounds))
     return W
 
 
